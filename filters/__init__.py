@@ -1,0 +1,36 @@
+"""The six pipeline filters as plain VTK algorithms, plus the scene reader (DESIGN §5).
+
+``from muscle_mss.filters import FibreResampler, SpringBuilder, RigidPoseTransform,
+MSSCollisionSolver, MVCSurfaceDeformer, VolumeErrorProbe, read_scene``
+
+Names are imported on first use, so importing one filter does not import (and compile) them all.
+"""
+import importlib
+
+# Public name -> module of this package defining it.
+_EXPORTS = {
+    "FibreResampler": "fibre_resampler",
+    "SpringBuilder": "spring_builder",
+    "RigidPoseTransform": "rigid_pose_transform",
+    "MSSCollisionSolver": "collision_solver",
+    "MVCSurfaceDeformer": "mvc_surface_deformer",
+    "VolumeErrorProbe": "volume_error_probe",
+    "read_scene": "scene_io",
+    "write_scene": "scene_io",
+}
+
+FILTER_NAMES = ("FibreResampler", "SpringBuilder", "RigidPoseTransform",
+                "MSSCollisionSolver", "MVCSurfaceDeformer", "VolumeErrorProbe")
+"""The filters in pipeline order; the ParaView plugin exposes exactly these."""
+
+__all__ = list(_EXPORTS) + ["MuscleMSSError"]
+
+
+def __getattr__(name):
+    if name == "MuscleMSSError":
+        from muscle_mss.core.errors import MuscleMSSError
+        return MuscleMSSError
+    if name in _EXPORTS:
+        module = importlib.import_module(f".{_EXPORTS[name]}", __name__)
+        return getattr(module, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

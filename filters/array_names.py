@@ -1,0 +1,35 @@
+"""Names of every VTK array that travels between the filters (DESIGN §5).
+
+These names are the contract between stages and the format of saved data and state files:
+use the constants, never the literals.
+"""
+
+# Point data of a muscle block (particles).
+REST_POSITION = "rest_position"      # float64 x3, particle position in the rest pose, mm
+FIBRE_ID = "fibre_id"                # int32, which fibre of the muscle
+FIBRE_INDEX = "fibre_index"          # int32, place along the fibre, 0 = origin end
+FIBRE_GRID = "fibre_grid"            # int32 x2, (row, col) of the fibre in the cross-section grid
+FIXED = "fixed"                      # uint8, 1 for the two end particles of each fibre
+BOUNDARY = "boundary"                # uint8, 1 for particles in collisions and in the MVC cage
+RADIUS = "radius"                    # float64, collision sphere radius, mm (0 if not boundary)
+MASS = "mass"                        # float64, particle mass, kg
+BONE_WEIGHTS = "bone_weights"        # float64 x B, blend weight of each bone (pose filter)
+VELOCITY = "velocity"                # float64 x3, mm/s (solver)
+DISPLACEMENT = "displacement"        # float64 x3, solved minus posed position, mm (solver)
+COLLIDED = "collided"                # uint8, collided in the last iteration (solver)
+
+# Cell data of the spring cells (two-point lines) of a muscle block.
+REST_LENGTH = "rest_length"          # float64, mm
+STIFFNESS = "stiffness"              # float64, N/mm
+DAMPING = "damping"                  # float64, N s/mm
+
+# Cell data of the deformed fibre polylines (MVC Surface Deformer).
+FIBRE_LENGTH = "fibre_length"        # float64, mm
+FIBRE_STRAIN = "fibre_strain"        # float64, length / rest length - 1
+
+# Field data.
+MUSCLE_NAME = "muscle_name"          # string, the block name
+BONE_NAMES = "bone_names"            # string x B, order of the bone_weights components
+REST_VOLUME = "rest_volume"          # float64, mm^3 (Volume-Error Probe)
+VOLUME = "volume"                    # float64, mm^3
+VOLUME_ERROR_PCT = "volume_error_pct"  # float64, %

@@ -1,0 +1,188 @@
+"""The base of the six filters: ports and properties from one table, errors, progress, time.
+
+A filter subclasses :class:`MuscleFilter`, lists its ``INPUTS``, ``OUTPUTS`` (:class:`Port`) and
+``PROPERTIES`` (:class:`~muscle_mss.filters.properties.Property`), and implements
+:meth:`MuscleFilter.execute`. It then works as a plain VTK algorithm in any Python with ``vtk``::
+
+    f = FibreResampler(); f.SetInputConnection(0, reader.GetOutputPort()); f.Update()
+
+and ``muscle_mss.plugin`` exposes the same class to ParaView. Bad input (DESIGN §8) is raised by
+the core or the filter as :class:`MuscleMSSError`; the base turns it into a VTK error message
+naming the filter plus empty outputs (what ParaView shows), and :meth:`MuscleFilter.Update`
+re-raises it in Python — the error of the first failing filter upstream, not a follow-on one.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
+from vtkmodules.vtkCommonCore import vtkOutputWindow
+from vtkmodules.vtkCommonDataModel import vtkDataObject
+from vtkmodules.vtkCommonExecutionModel import (vtkDemandDrivenPipeline,
+                                                vtkStreamingDemandDrivenPipeline)
+
+from muscle_mss.core.errors import MuscleMSSError
+
+from .properties import Property
+
+SDDP = vtkStreamingDemandDrivenPipeline
+
+
+@dataclass(frozen=True)
+class Port:
+    """An input or output port: ``name`` is the ParaView input property / output port name."""
+
+    name: str
+    data_type: str
+    doc: str
+    optional: bool = False
+
+
+class MuscleFilter(VTKPythonAlgorithmBase):
+    """Base of the muscle-mss filters; see the module docstring."""
+
+    LABEL = ""          # ParaView label, e.g. "Fibre Resampler" (constructor FibreResampler())
+    HELP = ""           # one paragraph: what the filter does, shown as its documentation
+    INPUTS: tuple = ()
+    OUTPUTS: tuple = ()
+    PROPERTIES: tuple = ()
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        for prop in cls.PROPERTIES:
+            if "Set" + prop.name not in vars(cls):
+                setattr(cls, "Set" + prop.name, _make_setter(prop))
+            if "Get" + prop.name not in vars(cls):
+                setattr(cls, "Get" + prop.name, _make_getter(prop))
+
+    def __init__(self):
+        super().__init__(nInputPorts=len(self.INPUTS), nOutputPorts=len(self.OUTPUTS),
+                         outputType=self.OUTPUTS[0].data_type)
+        self._values = {p.name: p.stored_default for p in self.PROPERTIES}
+        self._error = None
+        self._request = None
+        self._out_info = None
+
+    # ---- properties ------------------------------------------------------------------------
+    def value(self, name: str):
+        """The stored value of a property (an enum's index)."""
+        return self._values[name]
+
+    def choice(self, name: str) -> str:
+        """The text of an enum property's current choice."""
+        prop = next(p for p in self.PROPERTIES if p.name == name)
+        return prop.choices[self._values[name]]
+
+    def _check_properties(self):
+        for prop in self.PROPERTIES:
+            problem = prop.range_problem(self._values[prop.name])
+            if problem:
+                raise MuscleMSSError(problem)
+
+    # ---- ports -----------------------------------------------------------------------------
+    def FillInputPortInformation(self, port, info):
+        info.Set(self.INPUT_REQUIRED_DATA_TYPE(), self.INPUTS[port].data_type)
+        if self.INPUTS[port].optional:
+            info.Set(self.INPUT_IS_OPTIONAL(), 1)
+        return 1
+
+    def FillOutputPortInformation(self, port, info):
+        info.Set(vtkDataObject.DATA_TYPE_NAME(), self.OUTPUTS[port].data_type)
+        return 1
+
+    # ---- execution ---------------------------------------------------------------------------
+    def RequestData(self, request, inInfo, outInfo):
+        # VTK 9.2/9.3 keep an abort flag set from the previous run (paraview-python-plugins §6).
+        self.SetAbortExecute(0)
+        self._error = None
+        self._request, self._out_info = request, outInfo
+        outputs = [outInfo.GetInformationObject(i).Get(vtkDataObject.DATA_OBJECT())
+                   for i in range(self.GetNumberOfOutputPorts())]
+        try:
+            self._check_properties()
+            inputs = []
+            for i, port in enumerate(self.INPUTS):
+                data = None
+                if inInfo[i].GetNumberOfInformationObjects() > 0:
+                    data = inInfo[i].GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
+                if data is None and not port.optional:
+                    raise MuscleMSSError(f"input '{port.name}' is not connected")
+                inputs.append(data)
+            self.execute(inputs, outputs)
+        except MuscleMSSError as err:
+            self._error = err
+            for out in outputs:
+                out.Initialize()
+            message = f"{self.LABEL}: {err}"
+            vtkOutputWindow.GetInstance().DisplayErrorText(message + "\n")
+        finally:
+            self._request = self._out_info = None
+        return 1
+
+    def execute(self, inputs, outputs):
+        """Compute ``outputs`` (the output data objects, to fill) from ``inputs`` (data objects,
+        None for an unconnected optional port). Raise :class:`MuscleMSSError` on bad input."""
+        raise TypeError(f"{type(self).__name__} does not define execute()")
+
+    def Update(self, *args):
+        """Update the pipeline; raise the :class:`MuscleMSSError` of the first filter upstream
+        (or this one) that refused its input."""
+        result = super().Update(*args)
+        error = pipeline_error(self)
+        if error is not None:
+            raise error
+        return result
+
+    # ---- helpers for execute() ---------------------------------------------------------------
+    def progress(self, fraction: float) -> bool:
+        """Report progress (0..1) to ParaView; return True when the user asked to abort."""
+        self.UpdateProgress(min(max(float(fraction), 0.0), 1.0))
+        check = getattr(self, "CheckAbort", None)
+        return bool(check()) if check is not None else bool(self.GetAbortExecute())
+
+    def requested_time(self, default: float | None = None):
+        """The time asked of this filter's outputs (UPDATE_TIME_STEP), or ``default``."""
+        port = self._request.Get(vtkDemandDrivenPipeline.FROM_OUTPUT_PORT()) \
+            if self._request is not None else 0
+        info = self._out_info.GetInformationObject(max(port, 0))
+        if info.Has(SDDP.UPDATE_TIME_STEP()):
+            return info.Get(SDDP.UPDATE_TIME_STEP())
+        return default
+
+
+def pipeline_error(algorithm):
+    """The recorded error of the furthest-upstream muscle-mss filter feeding ``algorithm``
+    (itself included), or None."""
+    seen = set()
+
+    def visit(alg):
+        if alg is None or id(alg) in seen:
+            return None
+        seen.add(id(alg))
+        for port in range(alg.GetNumberOfInputPorts()):
+            for c in range(alg.GetNumberOfInputConnections(port)):
+                upstream = visit(alg.GetInputConnection(port, c).GetProducer())
+                if upstream is not None:
+                    return upstream
+        return getattr(alg, "_error", None)
+
+    return visit(algorithm)
+
+
+def _make_setter(prop: Property):
+    def setter(self, value):
+        stored = prop.coerce(value, self.LABEL)
+        if self._values[prop.name] != stored:
+            self._values[prop.name] = stored
+            self.Modified()
+    setter.__name__ = "Set" + prop.name
+    setter.__doc__ = prop.doc
+    return setter
+
+
+def _make_getter(prop: Property):
+    def getter(self):
+        return self._values[prop.name]
+    getter.__name__ = "Get" + prop.name
+    getter.__doc__ = prop.doc
+    return getter

@@ -1,0 +1,77 @@
+"""One definition of every filter property (DESIGN §2, STYLE "One definition of everything").
+
+A filter lists its :class:`Property` objects in ``PROPERTIES``. From that one table
+:class:`muscle_mss.filters.base.MuscleFilter` generates the ``SetX`` / ``GetX`` methods used in
+plain VTK, and ``muscle_mss.plugin`` generates the ParaView declarations (name, default, range,
+enumeration, tooltip, panel group). The ``name`` is the ParaView property name, the Python
+attribute in ``paraview.simple`` and the key in state files: never rename one casually.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from muscle_mss.core.errors import MuscleMSSError
+
+KINDS = ("int", "double", "bool", "enum")
+
+
+@dataclass(frozen=True)
+class Property:
+    """A filter property.
+
+    ``kind`` is one of ``int``, ``double``, ``bool``, ``enum``. An enum stores the index of
+    its choice (ParaView stores the int) and accepts the choice's text in ``SetX``.
+    ``minimum`` / ``maximum`` bound int and double values (inclusive, None = unbounded).
+    ``doc`` becomes the tooltip and the setter's docstring; ``group`` the panel group.
+    """
+
+    name: str
+    kind: str
+    default: object
+    doc: str
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple = ()
+    group: str = ""
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"property {self.name}: kind {self.kind!r} not in {KINDS}")
+        if self.kind == "enum" and not self.choices:
+            raise ValueError(f"property {self.name}: an enum needs choices")
+
+    def coerce(self, value, owner: str = ""):
+        """Turn a user value into the stored type; an unknown enum text raises :class:`MuscleMSSError`."""
+        where = f"{owner}.{self.name}" if owner else self.name
+        if self.kind == "enum":
+            if isinstance(value, str):
+                if value not in self.choices:
+                    raise MuscleMSSError(f"{where}: {value!r} is not one of {', '.join(self.choices)}")
+                return self.choices.index(value)
+            index = int(value)
+            if not 0 <= index < len(self.choices):
+                raise MuscleMSSError(f"{where}: choice {index} is out of range 0..{len(self.choices) - 1}")
+            return index
+        if self.kind == "bool":
+            return bool(value)
+        return int(value) if self.kind == "int" else float(value)
+
+    def range_problem(self, value, owner: str = "") -> str | None:
+        """Why a stored value is outside the property's range, or None.
+
+        Ranges are checked when the filter runs (not in the setter), so that ParaView reports
+        them as a filter error with an empty output rather than a traceback from a setter.
+        """
+        if self.kind not in ("int", "double"):
+            return None
+        where = f"{owner} property {self.name}" if owner else f"property {self.name}"
+        if self.minimum is not None and value < self.minimum:
+            return f"{where} is {value}; it must be at least {self.minimum}"
+        if self.maximum is not None and value > self.maximum:
+            return f"{where} is {value}; it must be at most {self.maximum}"
+        return None
+
+    @property
+    def stored_default(self):
+        """The default as stored (an enum's index)."""
+        return self.coerce(self.default)

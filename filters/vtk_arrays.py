@@ -1,0 +1,261 @@
+"""Every conversion between VTK objects and NumPy arrays (STYLE "Layers that never leak").
+
+The filters call these helpers and hand plain arrays to ``muscle_mss.core``. Arrays taken from
+VTK are copies, so that a filter can never modify its input by writing into them.
+"""
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonCore import (vtkDoubleArray, vtkIdTypeArray, vtkPoints,
+                                      vtkStringArray)
+from vtkmodules.vtkCommonDataModel import (vtkCellArray, vtkCompositeDataSet,
+                                           vtkMultiBlockDataSet, vtkPolyData, vtkTable)
+
+from muscle_mss.core.errors import MuscleMSSError
+
+
+# ---- points and cells --------------------------------------------------------------------
+
+def points_of(dataset) -> np.ndarray:
+    """Point coordinates as a new (n, 3) float64 array (empty for a dataset without points)."""
+    pts = dataset.GetPoints()
+    if pts is None or dataset.GetNumberOfPoints() == 0:
+        return np.zeros((0, 3))
+    return np.array(vtk_to_numpy(pts.GetData()), dtype=np.float64).reshape(-1, 3)
+
+
+def _cell_array_to_csr(cells: vtkCellArray):
+    offsets = np.array(vtk_to_numpy(cells.GetOffsetsArray()), dtype=np.int64)
+    connectivity = np.array(vtk_to_numpy(cells.GetConnectivityArray()), dtype=np.int64)
+    if len(offsets) == 0:
+        offsets = np.zeros(1, dtype=np.int64)
+    return offsets, connectivity
+
+
+def _csr_to_cell_array(offsets, connectivity) -> vtkCellArray:
+    cells = vtkCellArray()
+    off = numpy_to_vtk(np.ascontiguousarray(offsets, dtype=np.int64), deep=True,
+                       array_type=vtkIdTypeArray().GetDataType())
+    con = numpy_to_vtk(np.ascontiguousarray(connectivity, dtype=np.int64), deep=True,
+                       array_type=vtkIdTypeArray().GetDataType())
+    cells.SetData(off, con)
+    return cells
+
+
+def triangles_of(polydata, where: str = "") -> np.ndarray:
+    """The polygons of a vtkPolyData as (m, 3) int64; raise if any polygon is not a triangle."""
+    offsets, connectivity = _cell_array_to_csr(polydata.GetPolys())
+    sizes = np.diff(offsets)
+    if (sizes != 3).any():
+        bad = int(np.flatnonzero(sizes != 3)[0])
+        raise MuscleMSSError(f"{where}: polygon {bad} has {int(sizes[bad])} points; "
+                             "surfaces must be triangle meshes (apply Triangulate first)")
+    return connectivity.reshape(-1, 3)
+
+
+def lines_of(polydata):
+    """The line / polyline cells of a vtkPolyData as CSR ``(offsets (c+1,), connectivity)``."""
+    return _cell_array_to_csr(polydata.GetLines())
+
+
+def make_polydata(points, triangles=None, line_offsets=None, line_connectivity=None,
+                  segments=None) -> vtkPolyData:
+    """A new vtkPolyData from arrays.
+
+    ``triangles`` (m, 3) int; polylines as CSR (``line_offsets``, ``line_connectivity``);
+    or two-point lines (springs) as ``segments`` (s, 2) int.
+    """
+    pd = vtkPolyData()
+    vpts = vtkPoints()
+    vpts.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
+                              deep=True))
+    pd.SetPoints(vpts)
+    if triangles is not None:
+        tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        pd.SetPolys(_csr_to_cell_array(np.arange(0, 3 * len(tri) + 1, 3), tri.reshape(-1)))
+    if segments is not None:
+        seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
+        pd.SetLines(_csr_to_cell_array(np.arange(0, 2 * len(seg) + 1, 2), seg.reshape(-1)))
+    elif line_offsets is not None:
+        pd.SetLines(_csr_to_cell_array(line_offsets, line_connectivity))
+    return pd
+
+
+def with_points(polydata, points) -> vtkPolyData:
+    """A copy of ``polydata`` (cells and arrays shared, never modified) with new coordinates."""
+    out = vtkPolyData()
+    out.ShallowCopy(polydata)
+    vpts = vtkPoints()
+    vpts.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64), deep=True))
+    out.SetPoints(vpts)  # a new vtkPoints: the input's stay untouched
+    return out
+
+
+# ---- data arrays ---------------------------------------------------------------------------
+
+def _get(data, name, where, required):
+    arr = data.GetAbstractArray(name)
+    if arr is None:
+        if required:
+            raise MuscleMSSError(f"{where}: array '{name}' is missing")
+        return None
+    return arr
+
+
+def point_array(dataset, name: str, where: str = "", required: bool = True, dtype=None):
+    """A copy of a point-data array as NumPy (None when absent and not required)."""
+    arr = _get(dataset.GetPointData(), name, where, required)
+    return None if arr is None else np.array(vtk_to_numpy(arr), dtype=dtype)
+
+
+def cell_array(dataset, name: str, where: str = "", required: bool = True, dtype=None):
+    """A copy of a cell-data array as NumPy (None when absent and not required)."""
+    arr = _get(dataset.GetCellData(), name, where, required)
+    return None if arr is None else np.array(vtk_to_numpy(arr), dtype=dtype)
+
+
+def _to_vtk(name, values):
+    values = np.ascontiguousarray(values)
+    if values.dtype == np.bool_:
+        values = values.astype(np.uint8)
+    arr = numpy_to_vtk(values, deep=True)
+    arr.SetName(name)
+    return arr
+
+
+def set_point_array(dataset, name: str, values) -> None:
+    """Add (or replace) a point-data array; (n,) or (n, k) values."""
+    dataset.GetPointData().AddArray(_to_vtk(name, values))
+
+
+def set_cell_array(dataset, name: str, values) -> None:
+    """Add (or replace) a cell-data array; (c,) or (c, k) values."""
+    dataset.GetCellData().AddArray(_to_vtk(name, values))
+
+
+def point_arrays(dataset) -> dict:
+    """All point-data arrays (copies) by name."""
+    pdata = dataset.GetPointData()
+    out = {}
+    for i in range(pdata.GetNumberOfArrays()):
+        arr = pdata.GetAbstractArray(i)
+        if arr is not None and arr.GetName() and hasattr(arr, "GetNumberOfComponents") \
+                and arr.IsNumeric():
+            out[arr.GetName()] = np.array(vtk_to_numpy(arr))
+    return out
+
+
+def set_field(dataset, name: str, value) -> None:
+    """Store a string, a number, a sequence of strings or numbers in field data."""
+    fd = dataset.GetFieldData()
+    if isinstance(value, str):
+        arr = vtkStringArray()
+        arr.SetName(name)
+        arr.InsertNextValue(value)
+    elif isinstance(value, (list, tuple)) and value and isinstance(value[0], str):
+        arr = vtkStringArray()
+        arr.SetName(name)
+        for v in value:
+            arr.InsertNextValue(v)
+    else:
+        arr = vtkDoubleArray()
+        arr.SetName(name)
+        for v in np.atleast_1d(np.asarray(value, dtype=np.float64)):
+            arr.InsertNextValue(float(v))
+    fd.AddArray(arr)
+
+
+def field(dataset, name: str, default=None):
+    """A field-data value: a str (one string), a list of str, a float or a float array."""
+    arr = dataset.GetFieldData().GetAbstractArray(name)
+    if arr is None:
+        return default
+    if isinstance(arr, vtkStringArray):
+        values = [arr.GetValue(i) for i in range(arr.GetNumberOfValues())]
+        return values[0] if len(values) == 1 else values
+    values = np.array(vtk_to_numpy(arr), dtype=np.float64)
+    return float(values[0]) if values.size == 1 else values
+
+
+# ---- multiblocks -----------------------------------------------------------------------------
+
+def blocks(multiblock, where: str = "") -> list:
+    """The leaves of a multiblock as ``[(name, dataset), …]`` in order, empty leaves skipped.
+
+    Every leaf must have a name (``vtkCompositeDataSet.NAME()``) that is unique.
+    """
+    items = []
+    it = multiblock.NewTreeIterator()
+    it.VisitOnlyLeavesOn()
+    it.SkipEmptyNodesOn()
+    it.InitTraversal()
+    while not it.IsDoneWithTraversal():
+        name = ""
+        if it.HasCurrentMetaData():
+            md = it.GetCurrentMetaData()
+            if md.Has(vtkCompositeDataSet.NAME()):
+                name = md.Get(vtkCompositeDataSet.NAME())
+        items.append((name, it.GetCurrentDataObject()))
+        it.GoToNextItem()
+    names = [n for n, _ in items]
+    for i, n in enumerate(names):
+        if not n:
+            raise MuscleMSSError(f"{where}: block {i} has no name; every block must be named "
+                                 "after its muscle or bone")
+        if names.index(n) != i:
+            raise MuscleMSSError(f"{where}: two blocks are named '{n}'; names must be unique")
+    return items
+
+
+def fill_multiblock(out: vtkMultiBlockDataSet, items) -> vtkMultiBlockDataSet:
+    """Make ``out`` a flat multiblock of the named ``items`` ``[(name, dataset), …]``."""
+    out.Initialize()
+    out.SetNumberOfBlocks(len(items))
+    for i, (name, data) in enumerate(items):
+        out.SetBlock(i, data)
+        out.GetMetaData(i).Set(vtkCompositeDataSet.NAME(), name)
+    return out
+
+
+def make_multiblock(items) -> vtkMultiBlockDataSet:
+    """A new flat multiblock of the named ``items``."""
+    return fill_multiblock(vtkMultiBlockDataSet(), items)
+
+
+# ---- tables ----------------------------------------------------------------------------------
+
+def table_columns(table) -> dict:
+    """The columns of a vtkTable by name: numeric ones as NumPy, string ones as lists of str."""
+    out = {}
+    for i in range(table.GetNumberOfColumns()):
+        col = table.GetColumn(i)
+        name = table.GetColumnName(i)
+        if isinstance(col, vtkStringArray):
+            out[name] = [col.GetValue(j) for j in range(col.GetNumberOfValues())]
+        elif col.IsNumeric():
+            out[name] = np.array(vtk_to_numpy(col))
+        else:  # a vtkVariantArray, as some readers make
+            out[name] = [col.GetValue(j).ToString() for j in range(col.GetNumberOfValues())]
+    return out
+
+
+def fill_table(out: vtkTable, columns: dict) -> vtkTable:
+    """Make ``out`` a table of ``columns`` (name → numbers or strings), in order."""
+    out.Initialize()
+    for name, values in columns.items():
+        values = list(values) if not isinstance(values, np.ndarray) else values
+        if len(values) and isinstance(values[0], str):
+            arr = vtkStringArray()
+            arr.SetName(name)
+            for v in values:
+                arr.InsertNextValue(v)
+        else:
+            arr = _to_vtk(name, np.asarray(values))
+        out.AddColumn(arr)
+    return out
+
+
+def make_table(columns: dict) -> vtkTable:
+    """A new vtkTable of ``columns``."""
+    return fill_table(vtkTable(), columns)
