@@ -11,3 +11,10 @@ class MuscleMSSError(ValueError):
     The message names the file / block / row and the broken rule, e.g.
     ``"fibres.vtm block 'gracilis': fibre 12 has 1 point; a fibre needs at least 2"``.
     """
+
+
+def first_problem(problems) -> MuscleMSSError:
+    """The error to raise for a non-empty list of problem sentences: the first one, saying how
+    many more there are (``muscle-mss validate`` lists them all)."""
+    more = f" (and {len(problems) - 1} more problems)" if len(problems) > 1 else ""
+    return MuscleMSSError(problems[0] + more)

@@ -5,7 +5,7 @@ rules with the same messages. Rows are numbered from 1 = the first data row (fil
 """
 import numpy as np
 
-from .errors import MuscleMSSError
+from .errors import first_problem
 from .scene import MOTION_COLUMNS, MOTION_FILE, Motion
 
 RIGID_TOLERANCE = 1e-5
@@ -94,8 +94,7 @@ def motion_from_rows(times, bones, values, known_bones=None, source=MOTION_FILE)
     """Like :func:`motion_problems` but raise :class:`MuscleMSSError` on the first problem."""
     motion, problems = motion_problems(times, bones, values, known_bones, source)
     if problems:
-        more = f" (and {len(problems) - 1} more problems)" if len(problems) > 1 else ""
-        raise MuscleMSSError(problems[0] + more)
+        raise first_problem(problems)
     return motion
 
 

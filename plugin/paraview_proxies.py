@@ -1,0 +1,120 @@
+"""ParaView proxies for the six filters, generated from their ``PROPERTIES``/``INPUTS``/``OUTPUTS``
+tables (DESIGN §2: one definition of each property).
+
+For each filter class this module defines a subclass with one ``Set<Name>`` method per property,
+decorated with the Server Manager XML ParaView needs (type, default, range or enumeration,
+tooltip), the input ports, named output ports, panel groups, the time-steps information property
+and the "Muscle MSS" menu category, then registers it with ``smproxy.filter``. The proxy ``name``
+(the state-file type) is the class name, e.g. ``FibreResampler``; the ``label`` gives the
+``paraview.simple`` constructor, e.g. ``FibreResampler()`` from "Fibre Resampler".
+
+Only ParaView imports this module (through ``paraview_plugins/muscle_mss_plugin.py``).
+"""
+import importlib
+from xml.sax.saxutils import escape, quoteattr
+
+from paraview.util.vtkAlgorithm import smhint, smproperty, smproxy
+
+from muscle_mss.filters import FILTER_NAMES, _EXPORTS
+
+MENU_CATEGORY = "Muscle MSS"
+
+__all__ = list(FILTER_NAMES)
+
+
+def _documentation(text: str) -> str:
+    return f"<Documentation>{escape(text)}</Documentation>"
+
+
+def property_xml(prop) -> str:
+    """The Server Manager XML of one :class:`~muscle_mss.filters.properties.Property`."""
+    xml_type = "DoubleVectorProperty" if prop.kind == "double" else "IntVectorProperty"
+    default = prop.stored_default
+    default_text = repr(float(default)) if prop.kind == "double" else str(int(default))
+    if prop.kind == "enum":
+        entries = "".join(f'<Entry value="{i}" text={quoteattr(c)}/>'
+                          for i, c in enumerate(prop.choices))
+        domain = f'<EnumerationDomain name="enum">{entries}</EnumerationDomain>'
+    elif prop.kind == "bool":
+        domain = '<BooleanDomain name="bool"/>'
+    else:
+        tag = "DoubleRangeDomain" if prop.kind == "double" else "IntRangeDomain"
+        bounds = "".join(f' {k}="{v}"' for k, v in (("min", prop.minimum), ("max", prop.maximum))
+                         if v is not None)
+        domain = f'<{tag} name="range"{bounds}/>'
+    return (f'<{xml_type} name="{prop.name}" command="Set{prop.name}" number_of_elements="1" '
+            f'default_values="{default_text}">{domain}{_documentation(prop.doc)}</{xml_type}>')
+
+
+def input_xml(index: int, port) -> str:
+    """The Server Manager XML of one input port."""
+    hints = "<Hints><Optional/></Hints>" if port.optional else ""
+    return (f'<InputProperty name="{port.name}" port_index="{index}" command="SetInputConnection">'
+            f'<DataTypeDomain name="input_type"><DataType value="{port.data_type}"/>'
+            f'</DataTypeDomain>{_documentation(port.doc)}{hints}</InputProperty>')
+
+
+def groups_xml(properties) -> str:
+    """``<PropertyGroup>`` elements for the properties' panel groups, in table order."""
+    groups = {}
+    for prop in properties:
+        if prop.group:
+            groups.setdefault(prop.group, []).append(prop.name)
+    return "".join(f"<PropertyGroup label={quoteattr(label)}>"
+                   + "".join(f'<Property name="{n}"/>' for n in names) + "</PropertyGroup>"
+                   for label, names in groups.items())
+
+
+def _setter(filter_class, prop):
+    base_setter = getattr(filter_class, "Set" + prop.name)
+
+    def setter(self, value):
+        base_setter(self, value)
+    setter.__name__ = "Set" + prop.name
+    setter.__doc__ = prop.doc
+    return setter
+
+
+def make_proxy(filter_class):
+    """The decorated ParaView proxy class for one filter class."""
+    namespace = {"__module__": __name__, "__qualname__": filter_class.__name__,
+                 "__doc__": filter_class.HELP}
+    for prop in filter_class.PROPERTIES:
+        namespace["Set" + prop.name] = smproperty.xml(property_xml(prop))(
+            _setter(filter_class, prop))
+
+    def timestep_values(self):
+        # Never called: vtkSITimeStepsProperty reads TIME_STEPS of output port 0, so that the
+        # time keeper (time slider, animation) sees the motion's times.
+        return None
+    namespace["GetTimestepValues"] = smproperty.doublevector(
+        name="TimestepValues", information_only="1", si_class="vtkSITimeStepsProperty")(
+        timestep_values)
+
+    groups = groups_xml(filter_class.PROPERTIES)
+    if groups:
+        def panel_groups(self):
+            # Carries the <PropertyGroup> XML, which must follow the properties: 5.11/5.12
+            # sort properties by method name, and "zz_" sorts after every "Set…".
+            return None
+        namespace["zz_panel_groups"] = smproperty.xml(groups)(panel_groups)
+    proxy = type(filter_class.__name__, (filter_class,), namespace)
+
+    # Class-level XML: documentation, input ports, output port names, menu. (The decorators
+    # are applied here in code, so their order is the order of these calls.)
+    short = filter_class.HELP.split(". ")[0].rstrip(".") + "."
+    class_xml = [f"<Documentation short_help={quoteattr(short)} "
+                 f"long_help={quoteattr(short)}>{escape(filter_class.HELP)}</Documentation>"]
+    class_xml += [input_xml(i, port) for i, port in enumerate(filter_class.INPUTS)]
+    class_xml += [f'<OutputPort name="{port.name}" index="{i}"/>'
+                  for i, port in enumerate(filter_class.OUTPUTS)]
+    for xml in class_xml:
+        proxy = smproperty.xml(xml)(proxy)
+    proxy = smhint.xml(f'<ShowInMenu category="{MENU_CATEGORY}"/>')(proxy)
+    return smproxy.filter(name=filter_class.__name__, label=filter_class.LABEL,
+                          support_reload=False)(proxy)
+
+
+for _name in FILTER_NAMES:
+    _module = importlib.import_module(f"muscle_mss.filters.{_EXPORTS[_name]}")
+    globals()[_name] = make_proxy(getattr(_module, _name))
