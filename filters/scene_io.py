@@ -87,36 +87,42 @@ def _require(folder, filename):
     return path
 
 
-def read_multiblock(path):
-    """A ``.vtm`` file read with VTK's XML multiblock reader (as ParaView does)."""
+def multiblock_reader(path):
+    """An updated VTK XML multiblock reader of a ``.vtm`` file (what ParaView uses)."""
     reader = vtkXMLMultiBlockDataReader()
     reader.SetFileName(path)
     reader.Update()
-    data = reader.GetOutput()
+    data = reader.GetOutputDataObject(0)
     if data is None or data.GetNumberOfBlocks() == 0:
         raise MuscleMSSError(f"{path}: could not be read as a multiblock dataset or has no blocks")
-    return data
+    return reader
 
 
-def read_motion_table(path):
-    """``motion.csv`` read with VTK's delimited-text reader (ParaView's CSV reader)."""
+def motion_reader(path):
+    """An updated delimited-text reader of ``motion.csv`` set up as ParaView's CSV reader."""
     reader = vtkDelimitedTextReader()
     reader.SetFileName(path)
     reader.SetHaveHeaders(True)
     reader.SetDetectNumericColumns(True)
     reader.SetFieldDelimiterCharacters(",")
     reader.Update()
-    return reader.GetOutput()
+    return reader
+
+
+def scene_readers(folder):
+    """``(muscles, fibres, bones, motion)`` readers of a scene folder, updated, to connect
+    filters to (as a ParaView pipeline starts from its readers)."""
+    return (multiblock_reader(_require(folder, MUSCLES_FILE)),
+            multiblock_reader(_require(folder, FIBRES_FILE)),
+            multiblock_reader(_require(folder, BONES_FILE)),
+            motion_reader(_require(folder, MOTION_FILE)))
 
 
 def read_scene(folder):
     """``(muscles, fibres, bones, motion)`` of a scene folder: three vtkMultiBlockDataSets and
     the motion vtkTable, read with ParaView's readers. Checks only that the files exist and
     read; :func:`check_scene` checks the rules."""
-    return (read_multiblock(_require(folder, MUSCLES_FILE)),
-            read_multiblock(_require(folder, FIBRES_FILE)),
-            read_multiblock(_require(folder, BONES_FILE)),
-            read_motion_table(_require(folder, MOTION_FILE)))
+    return tuple(r.GetOutputDataObject(0) for r in scene_readers(folder))
 
 
 # ---- VTK -> arrays -------------------------------------------------------------------------
