@@ -1,0 +1,206 @@
+"""Spring Builder: the mass-spring model of every muscle (DESIGN §5–6, paper §3.2–3.3).
+
+Inputs: ``Particles`` (the Fibre Resampler's output) and ``Surfaces`` (the rest muscle surfaces,
+``muscles.vtm``, blocks named as the particles' blocks). Output ``Model``: the particle blocks in
+the same order, each a vtkPolyData with
+
+* points: the particles; cells: the springs, two-point line cells (each once, never from a
+  particle to itself, never between muscles) with cell data ``rest_length``, ``stiffness``,
+  ``damping``;
+* point data: every numeric array of the input block, plus ``boundary``, ``radius`` (0 where not
+  boundary) and ``mass`` (and ``rest_position`` from the points when the input lacks it);
+* field data: the input block's field data, ``muscle_name`` and this filter's properties.
+
+The rest pose is the ``rest_position`` array when present, else the points. Boundary particles
+and radii follow :mod:`muscle_mss.core.radii`; the radii of all muscles are shrunk together so
+that no two spheres of different muscles overlap in the rest pose (with either radius rule).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, shrink_radii,
+                                   sphere_radii)
+from muscle_mss.core.scene import MUSCLES_FILE
+from muscle_mss.core.springs import (delaunay_springs, knn_springs, lattice_springs,
+                                     rest_lengths)
+
+from . import array_names as A
+from . import vtk_arrays as V
+from .base import MuscleFilter, Port
+from .properties import Property
+
+LAYOUTS = ("lattice-6", "lattice-26", "Delaunay", "k-NN")
+LATTICE_NEIGHBOURHOOD = {"lattice-6": 6, "lattice-26": 26}
+PARTICLES = "particles"
+
+
+def _field_names(dataset) -> list:
+    fd = dataset.GetFieldData()
+    return [fd.GetAbstractArray(i).GetName() for i in range(fd.GetNumberOfArrays())
+            if fd.GetAbstractArray(i).GetName()]
+
+
+def surface_vertices(surfaces: dict, name: str) -> np.ndarray:
+    """(V, 3) float64 mm: the vertices of muscle ``name``'s rest surface used by its triangles."""
+    where = f"{MUSCLES_FILE} block '{name}'"
+    surface = surfaces.get(name)
+    if surface is None:
+        raise MuscleMSSError(f"{MUSCLES_FILE} has no block '{name}'; the Surfaces input needs "
+                             "the rest surface of every muscle of the Particles input")
+    if not surface.IsA("vtkPolyData"):
+        raise MuscleMSSError(f"{where} is a {surface.GetClassName()}; a muscle surface must be "
+                             "a triangle vtkPolyData")
+    triangles = V.triangles_of(surface, where)
+    if len(triangles) == 0:
+        raise MuscleMSSError(f"{where} has no triangles; a muscle surface must be a closed "
+                             "triangle mesh")
+    points = V.points_of(surface)
+    if triangles.max() >= len(points):
+        raise MuscleMSSError(f"{where} has triangles referring to missing points")
+    vertices = points[np.unique(triangles)]
+    if not np.isfinite(vertices).all():
+        raise MuscleMSSError(f"{where} has a NaN or infinite coordinate; every coordinate "
+                             "must be finite")
+    return vertices
+
+
+class SpringBuilder(MuscleFilter):
+    """Joins each muscle's particles by springs and gives its boundary particles collision
+    spheres; see the module docstring."""
+
+    LABEL = "Spring Builder"
+    HELP = ("Builds each muscle's mass-spring model from its particles: springs in the chosen "
+            "layout with rest lengths, stiffness and damping, particle masses, the boundary "
+            "particles and their collision sphere radii. Boundary: the surface of the fibre "
+            "lattice when the fibres have a fibre_grid, else the particles nearest to the muscle "
+            "surface's vertices. Radii follow the paper's heuristic (or the simpler rule) and "
+            "are then shrunk so that spheres of different muscles do not overlap at rest.")
+    INPUTS = (Port("Particles", "vtkMultiBlockDataSet",
+                   "particles per muscle (the Fibre Resampler's output)"),
+              Port("Surfaces", "vtkMultiBlockDataSet",
+                   "muscles.vtm: the rest muscle surfaces, blocks named as the particles' blocks"))
+    OUTPUTS = (Port("Model", "vtkMultiBlockDataSet",
+                    "the mass-spring model per muscle: particles and springs"),)
+    PROPERTIES = (
+        Property("Layout", "enum", "lattice-26",
+                 "Which particles are joined by springs. lattice-6: the particles as a cubic "
+                 "lattice (fibre_grid row, col and place along the fibre) with springs on the "
+                 "cube sides; lattice-26: sides, face and space diagonals (the paper's fastest "
+                 "converging layout); both need a full rectangular fibre_grid. Delaunay: the edges "
+                 "of the Delaunay tetrahedralisation of each muscle's particles. k-NN: each "
+                 "particle to its NeighbourCount nearest particles.",
+                 choices=LAYOUTS, group="Springs"),
+        Property("NeighbourCount", "int", 15,
+                 "k of the k-NN layout: springs from each particle to its k nearest particles of "
+                 "the same muscle (every particle gets at least k springs, or all others in a "
+                 "muscle of k particles or fewer). The paper suggests 15.",
+                 minimum=1, group="Springs"),
+        Property("Stiffness", "double", 10.0,
+                 "Spring stiffness, force per mm of stretch (g/s^2), the same for every spring; "
+                 "must be positive.", minimum=0.0, group="Springs"),
+        Property("Damping", "double", 0.5,
+                 "Spring damping along the spring (g/s), the same for every spring; 0 or more.",
+                 minimum=0.0, group="Springs"),
+        Property("Mass", "double", 1.0,
+                 "Mass of every particle (g); must be positive.", minimum=0.0, group="Springs"),
+        Property("RadiusHeuristic", "bool", True,
+                 "Collision sphere radii by the paper's heuristic: each surface vertex is "
+                 "collected by its nearest boundary particle and a particle's radius is the mean "
+                 "distance to its collected vertices (the distance to the nearest surface vertex "
+                 "for a particle that collects none). Off: every boundary particle gets the "
+                 "distance to its nearest surface vertex. Either way, radii are then shrunk until "
+                 "no two spheres of different muscles overlap in the rest pose.",
+                 group="Collision spheres"),
+    )
+
+    def execute(self, inputs, outputs):
+        layout = self.choice("Layout")
+        for prop in ("Stiffness", "Mass"):
+            if self.value(prop) <= 0.0:
+                raise MuscleMSSError(f"property {prop} is {self.value(prop)}; it must be positive")
+        blocks = V.blocks(inputs[0], where=PARTICLES)
+        if not blocks:
+            raise MuscleMSSError("the Particles input has no blocks; it needs one block per "
+                                 "muscle")
+        surfaces = dict(V.blocks(inputs[1], where=MUSCLES_FILE))
+        models = []
+        for done, (name, block) in enumerate(blocks):
+            models.append(self._muscle_model(name, block, surface_vertices(surfaces, name),
+                                             layout))
+            if self.progress(0.9 * (done + 1) / len(blocks)):
+                raise MuscleMSSError(f"stopped by the user after {done + 1} of {len(blocks)} "
+                                     "muscles")
+        sizes = [len(m["rest"]) for m in models]
+        radii = shrink_radii(np.concatenate([m["rest"] for m in models]),
+                             np.concatenate([m["radius"] for m in models]),
+                             np.repeat(np.arange(len(models)), sizes))
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        items = [(name, self._output_block(name, block, model, radii[starts[i]:starts[i + 1]],
+                                           layout))
+                 for i, ((name, block), model) in enumerate(zip(blocks, models))]
+        self.progress(1.0)
+        V.fill_multiblock(outputs[0], items)
+
+    def _muscle_model(self, name, block, vertices, layout) -> dict:
+        """Rest positions, springs, boundary and unshrunk radii of one muscle."""
+        where = f"{PARTICLES} block '{name}'"
+        if not block.IsA("vtkPolyData"):
+            raise MuscleMSSError(f"{where} is a {block.GetClassName()}; a particle block must "
+                                 "be a vtkPolyData")
+        if block.GetNumberOfPoints() == 0:
+            raise MuscleMSSError(f"{where} has no particles")
+        rest = V.point_array(block, A.REST_POSITION, where, required=False, dtype=np.float64)
+        if rest is None:
+            rest = V.points_of(block)
+        rest = rest.reshape(len(rest), -1)
+        if rest.shape != (block.GetNumberOfPoints(), 3):
+            raise MuscleMSSError(f"{where}: rest_position must have 3 components per particle")
+        if not np.isfinite(rest).all():
+            bad = int(np.flatnonzero(~np.isfinite(rest).all(axis=1))[0])
+            raise MuscleMSSError(f"{where}: particle {bad} has a NaN or infinite rest position")
+        grid = V.point_array(block, A.FIBRE_GRID, where, required=False, dtype=np.int64)
+        if grid is not None:
+            fibre_id = V.point_array(block, A.FIBRE_ID, where, dtype=np.int64)
+            fibre_index = V.point_array(block, A.FIBRE_INDEX, where, dtype=np.int64)
+        if layout in LATTICE_NEIGHBOURHOOD:
+            if grid is None:
+                raise MuscleMSSError(
+                    f"{where} has no fibre_grid; layout {layout} needs each fibre's place in a "
+                    "full rectangular grid (fibres.vtm cell data fibre_grid); choose Delaunay or "
+                    "k-NN for fibres without one")
+            springs = lattice_springs(grid, fibre_id, fibre_index,
+                                      LATTICE_NEIGHBOURHOOD[layout], where)
+        elif layout == "Delaunay":
+            springs = delaunay_springs(rest, where)
+        else:
+            springs = knn_springs(rest, self.value("NeighbourCount"))
+        if grid is not None:
+            boundary = boundary_from_grid(grid, fibre_id, fibre_index)
+        else:
+            boundary = boundary_from_surface(rest, vertices)
+        radius = sphere_radii(rest, boundary, vertices, self.value("RadiusHeuristic"))
+        return {"rest": rest, "springs": springs, "boundary": boundary, "radius": radius}
+
+    def _output_block(self, name, block, model, radius, layout):
+        """The model block of one muscle: a new vtkPolyData, the input block untouched."""
+        springs = model["springs"]
+        out = V.make_polydata(V.points_of(block), segments=springs)
+        for array_name, values in V.point_arrays(block).items():
+            V.set_point_array(out, array_name, values)
+        V.set_point_array(out, A.REST_POSITION, model["rest"])
+        V.set_point_array(out, A.BOUNDARY, model["boundary"].astype(np.uint8))
+        V.set_point_array(out, A.RADIUS, radius)
+        V.set_point_array(out, A.MASS, np.full(len(model["rest"]), self.value("Mass")))
+        V.set_cell_array(out, A.REST_LENGTH, rest_lengths(model["rest"], springs))
+        V.set_cell_array(out, A.STIFFNESS, np.full(len(springs), self.value("Stiffness")))
+        V.set_cell_array(out, A.DAMPING, np.full(len(springs), self.value("Damping")))
+        for field_name in _field_names(block):
+            V.set_field(out, field_name, V.field(block, field_name))
+        V.set_field(out, A.MUSCLE_NAME, name)
+        V.set_field(out, "Layout", layout)
+        for prop in ("NeighbourCount", "Stiffness", "Damping", "Mass"):
+            V.set_field(out, prop, self.value(prop))
+        V.set_field(out, "RadiusHeuristic", int(self.value("RadiusHeuristic")))
+        return out
