@@ -1,0 +1,252 @@
+"""Rigid Pose Transform: the skeleton at the requested time and the muscles carried along
+(paper §3.1, DESIGN §5 and §6 "Pose").
+
+The motion table sets the filter's time steps, so the ParaView time slider, pvpython's
+``UpdatePipeline(t)`` and an animation drive it. The blend weights depend only on the rest
+inputs and the weight properties; they are computed once and reused for every time.
+"""
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.vtkCommonCore import vtkOutputWindow
+from vtkmodules.vtkCommonDataModel import vtkDataObject
+
+from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.motion import motion_from_rows
+from muscle_mss.core.pose import BLENDINGS, DUAL_QUATERNION, blend, bone_weights, pose_at, \
+    transform_rigid
+from muscle_mss.core.scene import BONES_FILE, MOTION_COLUMNS, MOTION_FILE
+
+from . import array_names as A
+from . import vtk_arrays as V
+from .base import SDDP, MuscleFilter, Port
+from .properties import Property
+
+MODEL_PORT, BONES_PORT, MOTION_PORT, SURFACES_PORT = range(4)
+
+
+def _numbers(values, column: str) -> np.ndarray:
+    """A motion column as float64; text cells (a reader without numeric detection) are parsed."""
+    if isinstance(values, np.ndarray):
+        return values.astype(np.float64).reshape(-1)
+    out = np.empty(len(values))
+    for r, text in enumerate(values):
+        try:
+            out[r] = float(text)
+        except ValueError:
+            raise MuscleMSSError(f"{MOTION_FILE} row {r + 1}: {column} is '{text}', which is not "
+                                 "a number") from None
+    return out
+
+
+def motion_rows_of_table(table):
+    """``(times (R,), bones [R names], values (R, 12))`` of a motion vtkTable (DESIGN §4 columns).
+
+    Numeric columns may arrive as int, float, double or text; the bone column as text, a variant
+    or (for numeric names) a number column.
+    """
+    columns = {name.strip(): values for name, values in V.table_columns(table).items()}
+    for name in MOTION_COLUMNS:
+        if name not in columns:
+            raise MuscleMSSError(f"{MOTION_FILE}: column '{name}' is missing; the header must be "
+                                 f"{','.join(MOTION_COLUMNS)}")
+    bone_column = columns["bone"]
+    bones = [str(b) for b in (bone_column.tolist() if isinstance(bone_column, np.ndarray)
+                              else bone_column)]
+    times = _numbers(columns["time"], "time")
+    values = np.column_stack([_numbers(columns[name], name) for name in MOTION_COLUMNS[2:]])
+    return times, bones, values.reshape(len(times), 12)
+
+
+def _finite(rest, where: str) -> np.ndarray:
+    bad = ~np.isfinite(rest).all(axis=1)
+    if bad.any():
+        raise MuscleMSSError(f"{where}: point {int(np.flatnonzero(bad)[0])} has a NaN or infinite "
+                             "rest coordinate; every coordinate must be finite")
+    return rest
+
+
+def _tree_stamp(data):
+    """What identifies one version of an input: the object and the newest MTime in its tree."""
+    if data is None:
+        return None
+    stamp = data.GetMTime()
+    it = data.NewIterator()
+    it.InitTraversal()
+    while not it.IsDoneWithTraversal():
+        stamp = max(stamp, it.GetCurrentDataObject().GetMTime())
+        it.GoToNextItem()
+    return data.GetAddressAsString("vtkObjectBase"), stamp
+
+
+class RigidPoseTransform(MuscleFilter):
+    """Bones moved rigidly, muscle particles and surfaces by a blend of their nearest bones."""
+
+    LABEL = "Rigid Pose Transform"
+    HELP = ("Moves the bones rigidly to their pose at the current time of the motion table "
+            "(interpolated between rows: rotation by quaternion slerp, translation linearly; "
+            "clamped with a warning outside the table's range) and moves every particle of the "
+            "mass-spring model and every vertex of the rest muscle surfaces by a blend of the "
+            "transforms of its nearest bones, weighted by the rest-pose distance to the bone "
+            "surfaces. Advertises the motion's times as the pipeline's time steps. Adds the "
+            "point array bone_weights (one column per bone, in bones.vtm order) and the field "
+            "data bone_names.")
+    INPUTS = (
+        Port("Model", "vtkMultiBlockDataSet",
+             "The mass-spring model in the rest pose, one block per muscle (Spring Builder)."),
+        Port("Bones", "vtkMultiBlockDataSet",
+             "bones.vtm: one closed triangle surface per bone in the rest pose, named after it."),
+        Port("Motion", "vtkTable",
+             "motion.csv as read by ParaView's CSV reader: columns time, bone, m00 … m23."),
+        Port("Surfaces", "vtkMultiBlockDataSet",
+             "Optional: the rest muscle surfaces (muscles.vtm), to show the rigid-only pose.",
+             optional=True),
+    )
+    OUTPUTS = (
+        Port("PosedModel", "vtkMultiBlockDataSet",
+             "The model with posed particle positions; every input array kept, bone_weights added."),
+        Port("PosedBones", "vtkMultiBlockDataSet", "The bones at the current time."),
+        Port("PosedSurfaces", "vtkMultiBlockDataSet",
+             "The muscle surfaces carried rigidly by their bones (empty without Surfaces)."),
+    )
+    PROPERTIES = (
+        Property("Blending", "enum", DUAL_QUATERNION,
+                 "How the transforms of a point's bones are combined. 'dual quaternion' "
+                 "(Kavan et al. 2008) blends rigid transforms into a rigid transform and keeps "
+                 "the muscle's volume at large joint angles; 'linear' averages the matrices, "
+                 "which shrinks the muscle between bones turned far apart.",
+                 choices=BLENDINGS, group="Blending"),
+        Property("BonesPerPoint", "int", 2,
+                 "How many of its nearest bones (by distance to the bone surfaces in the rest "
+                 "pose) move each particle and surface vertex. 1 = the nearest bone only.",
+                 minimum=1, group="Blending"),
+        Property("FallOff", "double", 20.0,
+                 "Distance scale F of the weights, mm. With d_1 <= d_2 <= ... a point's "
+                 "distances to the bone surfaces and K = BonesPerPoint, bone k <= K gets "
+                 "exp(-d_k/F) - exp(-d_(K+1)/F), the others 0, normalised to sum 1: a bone "
+                 "F mm farther than another has about 1/e of its influence.",
+                 minimum=1e-3, group="Blending"),
+    )
+
+    def __init__(self):
+        super().__init__()
+        self._motion_key = None
+        self._motion = None
+        self._rest_key = None
+        self._rest = None
+
+    # ---- time -------------------------------------------------------------------------------
+    def _motion_times(self) -> list:
+        """The motion table's distinct finite times (s), read by updating its producer: input
+        data does not exist yet in RequestInformation. Empty when there is no usable table;
+        RequestData then reports why."""
+        if self.GetNumberOfInputConnections(MOTION_PORT) == 0:
+            return []
+        conn = self.GetInputConnection(MOTION_PORT, 0)
+        producer = conn.GetProducer()
+        try:
+            producer.Update(conn.GetIndex())
+            table = producer.GetOutputDataObject(conn.GetIndex())
+            if table is None or table.GetColumnByName("time") is None:
+                return []
+            times = _numbers(V.table_columns(table)["time"], "time")
+        except MuscleMSSError:
+            return []
+        return np.unique(times[np.isfinite(times)]).tolist()
+
+    def RequestInformation(self, request, inInfo, outInfo):
+        times = self._motion_times()
+        for port in range(self.GetNumberOfOutputPorts()):
+            info = outInfo.GetInformationObject(port)
+            info.Remove(SDDP.TIME_STEPS())
+            info.Remove(SDDP.TIME_RANGE())
+            if times:
+                info.Set(SDDP.TIME_STEPS(), times, len(times))
+                info.Set(SDDP.TIME_RANGE(), [times[0], times[-1]], 2)
+        return 1
+
+    def _read_motion(self, table, bone_names):
+        key = (table.GetAddressAsString("vtkObjectBase"), table.GetMTime(), tuple(bone_names))
+        if key != self._motion_key:
+            times, bones, values = motion_rows_of_table(table)
+            self._motion = motion_from_rows(times, bones, values, known_bones=bone_names)
+            self._motion_key = key
+        return self._motion
+
+    # ---- rest pose: positions and weights, once per rest input --------------------------------
+    def _rest_pose(self, model, bones, surfaces, model_items, bone_items, surface_items):
+        """Rest positions and blend weights of the model blocks and surface blocks, and the
+        bones' rest vertices; recomputed only when an input or a weight property changes."""
+        key = (_tree_stamp(model), _tree_stamp(bones), _tree_stamp(surfaces),
+               self.value("BonesPerPoint"), self.value("FallOff"))
+        if key == self._rest_key:
+            return self._rest
+        self._rest_key = self._rest = None
+        bone_surfaces, labels = [], []
+        for name, block in bone_items:
+            labels.append(f"{BONES_FILE} block '{name}'")
+            bone_surfaces.append((V.points_of(block), V.triangles_of(block, where=labels[-1])))
+        model_rest = []
+        for name, block in model_items:
+            where = f"Model block '{name}'"
+            rest = V.point_array(block, A.REST_POSITION, where=where, dtype=np.float64)
+            if rest.ndim != 2 or rest.shape[1] != 3 or len(rest) != block.GetNumberOfPoints():
+                raise MuscleMSSError(f"{where}: array '{A.REST_POSITION}' must have 3 components "
+                                     "and one tuple per particle")
+            model_rest.append(_finite(rest, where))
+        surface_rest = [_finite(V.points_of(block), f"Surfaces block '{name}'")
+                        for name, block in surface_items]
+        every = model_rest + surface_rest
+        self.progress(0.1)
+        # One call over all points: the kernel parallelises over points, not over blocks.
+        weights = bone_weights(np.concatenate(every) if every else np.zeros((0, 3)),
+                               bone_surfaces, self.value("BonesPerPoint"),
+                               self.value("FallOff"), labels)
+        split = np.split(weights, np.cumsum([len(r) for r in every])[:-1]) if every else []
+        self._rest = {
+            "bones": [v for v, _ in bone_surfaces],
+            "model": list(zip(model_rest, split[:len(model_rest)])),
+            "surfaces": list(zip(surface_rest, split[len(model_rest):])),
+        }
+        self._rest_key = key
+        return self._rest
+
+    # ---- execution ----------------------------------------------------------------------------
+    def execute(self, inputs, outputs):
+        model, bones, table, surfaces = inputs
+        bone_items = V.blocks(bones, where=BONES_FILE)
+        if not bone_items:
+            raise MuscleMSSError(f"{BONES_FILE}: has no blocks; the pose needs at least one bone")
+        bone_names = [name for name, _ in bone_items]
+        motion = self._read_motion(table, bone_names)
+        model_items = V.blocks(model, where="Model")
+        surface_items = V.blocks(surfaces, where="Surfaces") if surfaces is not None else []
+
+        time = self.requested_time(default=float(motion.times[0]))
+        matrices, used = pose_at(motion, time)
+        if used != time:
+            vtkOutputWindow.GetInstance().DisplayWarningText(
+                f"{self.LABEL}: time {time:g} is outside the motion's time range "
+                f"[{motion.times[0]:g}, {motion.times[-1]:g}]; showing the pose at {used:g}\n")
+
+        rest = self._rest_pose(model, bones, surfaces, model_items, bone_items, surface_items)
+        self.progress(0.6)
+        blending = self.choice("Blending")
+
+        def posed(items, rest_and_weights):
+            out = []
+            for (name, block), (points, weights) in zip(items, rest_and_weights):
+                moved = V.with_points(block, blend(points, weights, matrices, blending))
+                V.set_point_array(moved, A.BONE_WEIGHTS, weights)
+                V.set_field(moved, A.BONE_NAMES, bone_names)
+                out.append((name, moved))
+            return out
+
+        V.fill_multiblock(outputs[0], posed(model_items, rest["model"]))
+        V.fill_multiblock(outputs[1], [
+            (name, V.with_points(block, transform_rigid(points, matrices[b])))
+            for b, ((name, block), points) in enumerate(zip(bone_items, rest["bones"]))])
+        V.fill_multiblock(outputs[2], posed(surface_items, rest["surfaces"]))
+        for out in outputs:
+            out.GetInformation().Set(vtkDataObject.DATA_TIME_STEP(), time)
+        self.progress(1.0)
