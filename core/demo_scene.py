@@ -1,0 +1,748 @@
+"""The deterministic demo scene (DESIGN §4): a right thigh with 13 muscles and one walking cycle.
+
+Axes: x lateral (to the right), y anterior, z superior; millimetres; the hip centre (the centre
+of the femoral head) is the origin. The scene is the embedded default of the demo, the tests and
+the benchmarks, so it is built from closed formulas only: no random numbers, no files.
+
+Bones (pelvis, femur, tibia) are the zero level sets of implicit functions, smooth unions of
+spheres, ellipsoids and round cones placed at anatomical landmarks (acetabulum, iliac wing and
+crest, pubis, ischium with the obturator foramen; femoral head, neck, trochanters, shaft, linea
+aspera, condyles; tibial plateau, tuberosity, shaft, malleolus). They are meshed by marching
+tetrahedra on a Freudenthal (6-tetrahedra) subdivision of a regular grid: the level set of a
+piecewise-linear function with no zero at a grid node is a closed 2-manifold by construction.
+
+Muscles follow the paper's input (§3): a closed surface and fibres from origin to insertion. Each
+muscle is a fusiform envelope (elliptic cross-section, horizontal slices) around a centreline
+through anatomical way-points. Neighbouring envelopes overlap; where they do, each keeps the part
+where its own normalised elliptic distance is the smaller (a weighted Voronoi split), so that
+neighbours meet along a shared face instead of interpenetrating, and envelopes reaching into a
+bone are cut at its surface so that deep muscles lie against it. The surface is found by
+marching rays outward from the centreline in each slice to the first point outside; the fibres
+of the ``fibre_grid`` are placed along the same rays, the outer ring just beneath the surface.
+
+The walking cycle rotates the femur about the hip centre (flexion / extension about the x axis)
+and the tibia additionally about the knee axis, after normative sagittal gait curves.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import CubicSpline, PchipInterpolator
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .errors import MuscleMSSError
+from .scene import FibreSet, Motion, Scene, Surface
+
+HIP_CENTRE = np.array([0.0, 0.0, 0.0])
+"""Centre of the femoral head (mm): the hip's centre of rotation."""
+HIP_AXIS = np.array([1.0, 0.0, 0.0])
+"""Hip flexion axis: positive rotation about +x (right-hand rule) swings the knee forward."""
+KNEE_CENTRE = np.array([7.0, -8.0, -395.0])
+"""A point of the knee flexion axis (mm): midway between the centres of the femoral condyles."""
+KNEE_AXIS = np.array([1.0, 0.0, 0.0])
+"""Knee flexion axis (through the condyle centres); flexion is a negative rotation about it,
+which swings the tibia backward."""
+GAIT_CYCLE = 1.0
+"""Duration of the walking cycle (s), heel strike to heel strike of the right foot."""
+TIME_POINTS = 21
+"""Time points of the demo motion, evenly spread over one cycle including both heel strikes."""
+
+BONE_NAMES = ("pelvis", "femur", "tibia")
+MUSCLE_NAMES = (
+    "rectus_femoris", "vastus_lateralis", "vastus_intermedius", "vastus_medialis",
+    "sartorius", "gracilis", "adductor_longus", "adductor_brevis", "adductor_magnus",
+    "semitendinosus", "semimembranosus", "biceps_femoris_long_head",
+    "biceps_femoris_short_head",
+)
+SMALL_MUSCLE_NAMES = ("rectus_femoris", "vastus_lateralis", "vastus_intermedius",
+                      "vastus_medialis")
+"""The muscles of ``demo_scene("small")``: the quadriceps, which touch each other and the femur."""
+
+# Sagittal joint angles over one cycle (fraction of the cycle, degrees), read off normative adult
+# gait curves (Perry & Burnfield, Gait Analysis; Winter, Biomechanics and Motor Control of Human
+# Movement): hip 30 deg flexion at heel strike, -10 deg extension at terminal stance, ~35 deg
+# in late swing; knee 5 deg at heel strike, ~18 deg loading response, ~3 deg mid/terminal stance,
+# ~62 deg peak in initial swing. A periodic cubic spline joins them.
+_HIP_CURVE = ((0.0, 30.0), (0.12, 25.0), (0.3, 8.0), (0.5, -10.0), (0.62, 0.0), (0.75, 22.0),
+              (0.87, 34.0), (1.0, 30.0))
+_KNEE_CURVE = ((0.0, 5.0), (0.15, 18.0), (0.3, 8.0), (0.42, 3.0), (0.52, 12.0), (0.62, 40.0),
+               (0.72, 62.0), (0.82, 45.0), (0.92, 12.0), (1.0, 5.0))
+
+
+@dataclass(frozen=True)
+class _Size:
+    bone_spacing: float   # marching-tetrahedra grid step (mm)
+    grid: int             # fibres per side of the fibre_grid
+    fibre_vertices: int   # vertices per fibre polyline
+    rings: int            # muscle surface rings between origin and insertion
+    ring_vertices: int    # vertices per muscle surface ring
+
+
+_SIZES = {
+    "full": _Size(bone_spacing=3.0, grid=8, fibre_vertices=30, rings=36, ring_vertices=32),
+    "small": _Size(bone_spacing=6.0, grid=4, fibre_vertices=12, rings=14, ring_vertices=16),
+}
+
+
+# ---- joint angles and motion -------------------------------------------------------------
+
+def _periodic_spline(curve):
+    u, angle = np.array(curve).T
+    return CubicSpline(u * GAIT_CYCLE, angle, bc_type="periodic")
+
+
+def gait_angles(times):
+    """Hip and knee flexion (degrees) of the demo walking cycle at ``times`` (s).
+
+    The cycle repeats every :data:`GAIT_CYCLE` seconds. Hip flexion is positive when the thigh
+    swings forward, knee flexion is positive when the shank swings back.
+
+    Returns
+    -------
+    (hip_flexion_deg, knee_flexion_deg) : two (T,) float64 arrays
+    """
+    t = np.mod(np.asarray(times, dtype=np.float64), GAIT_CYCLE)
+    return _periodic_spline(_HIP_CURVE)(t), _periodic_spline(_KNEE_CURVE)(t)
+
+
+def rotation_about(axis, centre, angle_deg) -> np.ndarray:
+    """The 3x4 rigid transform rotating by ``angle_deg`` about the line through ``centre`` (mm)
+    along ``axis`` (right-hand rule)."""
+    k = np.asarray(axis, dtype=np.float64)
+    k = k / np.linalg.norm(k)
+    a = np.radians(angle_deg)
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    r = np.eye(3) + np.sin(a) * cross + (1.0 - np.cos(a)) * (cross @ cross)
+    centre = np.asarray(centre, dtype=np.float64)
+    return np.hstack([r, (centre - r @ centre)[:, None]])
+
+
+def _compose(outer, inner) -> np.ndarray:
+    """3x4 transform of ``x -> outer(inner(x))``."""
+    return np.hstack([outer[:, :3] @ inner[:, :3], (outer[:, :3] @ inner[:, 3] + outer[:, 3])[:, None]])
+
+
+def gait_motion(time_points: int = TIME_POINTS) -> Motion:
+    """One walking cycle: pelvis fixed, femur rotated about the hip centre by the hip flexion,
+    tibia = femur transform composed with the knee flexion about the knee axis.
+
+    ``time_points`` evenly spaced times (s) from 0 to :data:`GAIT_CYCLE` inclusive.
+    """
+    times = np.linspace(0.0, GAIT_CYCLE, time_points)
+    hip, knee = gait_angles(times)
+    matrices = np.empty((len(times), len(BONE_NAMES), 3, 4))
+    for i, (h, k) in enumerate(zip(hip, knee)):
+        femur = rotation_about(HIP_AXIS, HIP_CENTRE, h)
+        matrices[i, 0] = np.hstack([np.eye(3), np.zeros((3, 1))])
+        matrices[i, 1] = femur
+        matrices[i, 2] = _compose(femur, rotation_about(KNEE_AXIS, KNEE_CENTRE, -k))
+    return Motion(times, list(BONE_NAMES), matrices)
+
+
+# ---- implicit primitives (negative inside, roughly the distance in mm near the surface) -----
+
+def _v(*xyz):
+    return np.array(xyz, dtype=np.float64)
+
+
+def _sphere(p, centre, radius):
+    return np.linalg.norm(p - centre, axis=1) - radius
+
+
+def _ellipsoid(p, centre, radii, frame=None):
+    """``frame`` (3, 3): rows are the unit axes of the semi-axes ``radii``; None = x, y, z."""
+    q = p - centre
+    if frame is not None:
+        q = q @ np.asarray(frame).T
+    return (np.linalg.norm(q / radii, axis=1) - 1.0) * np.min(radii)
+
+
+def _round_cone(p, a, b, radius_a, radius_b):
+    ab = b - a
+    t = np.clip((p - a) @ ab / (ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1) - (radius_a + t * (radius_b - radius_a))
+
+
+def _blend(k, *fields):
+    """Smooth union of signed fields; ``k`` (mm) is the width of the fillet between parts."""
+    out = fields[0]
+    for f in fields[1:]:
+        h = np.clip(0.5 + 0.5 * (f - out) / k, 0.0, 1.0)
+        out = f + (out - f) * h - k * h * (1.0 - h)
+    return out
+
+
+def _frame(long_axis, towards):
+    """Orthonormal rows (long axis, second axis in the plane of ``towards``, normal)."""
+    e0 = np.asarray(long_axis, dtype=np.float64)
+    e0 = e0 / np.linalg.norm(e0)
+    e1 = np.asarray(towards, dtype=np.float64) - (np.dot(towards, e0)) * e0
+    e1 = e1 / np.linalg.norm(e1)
+    return np.array([e0, e1, np.cross(e0, e1)])
+
+
+# ---- bones ---------------------------------------------------------------------------------
+
+ASIS = _v(34.0, 52.0, 68.0)            # anterior superior iliac spine
+AIIS = _v(28.0, 40.0, 32.0)            # anterior inferior iliac spine
+PSIS = _v(-45.0, -88.0, 62.0)          # posterior superior iliac spine
+PUBIC_BODY = _v(-74.0, 36.0, -34.0)
+ISCHIAL_TUBEROSITY = _v(-32.0, -44.0, -70.0)
+_ACETABULUM_OPENING = _v(0.72, 0.3, -0.62) / np.linalg.norm(_v(0.72, 0.3, -0.62))
+_WING_CENTRE = _v(-8.0, -16.0, 72.0)
+_WING_FRAME = _frame(ASIS - PSIS, _v(0.25, 0.1, 1.0))
+_WING_RADII = _v(86.0, 52.0, 6.0)
+
+
+def _pelvis(p):
+    body = _sphere(p, -14.0 * _ACETABULUM_OPENING, 29.5)
+    wing = _ellipsoid(p, _WING_CENTRE, _WING_RADII, _WING_FRAME)
+    # The iliac crest: a thick rim along the upper half of the wing.
+    angles = np.linspace(0.0, np.pi, 7)
+    rim = [_WING_CENTRE + 0.93 * (_WING_RADII[0] * np.cos(a) * _WING_FRAME[0]
+                                  + _WING_RADII[1] * np.sin(a) * _WING_FRAME[1]) for a in angles]
+    crest = [_round_cone(p, rim[i], rim[i + 1], 6.5, 6.5) for i in range(len(rim) - 1)]
+    ilium = _round_cone(p, _v(-4.0, -6.0, 18.0), _v(-10.0, -18.0, 58.0), 19.0, 14.0)
+    spines = [_sphere(p, ASIS, 8.0), _sphere(p, AIIS, 7.0)]
+    superior_ramus = _round_cone(p, _v(-14.0, 24.0, -6.0), PUBIC_BODY + _v(6.0, 0.0, 6.0), 10.0, 8.5)
+    pubis = _ellipsoid(p, PUBIC_BODY + _v(-6.0, -2.0, -4.0), _v(10.0, 12.0, 24.0))
+    inferior_ramus = _round_cone(p, PUBIC_BODY + _v(-2.0, -8.0, -22.0),
+                                 ISCHIAL_TUBEROSITY + _v(-8.0, 6.0, -2.0), 7.5, 8.5)
+    ischium = _round_cone(p, _v(-10.0, -24.0, -18.0), ISCHIAL_TUBEROSITY, 13.0, 12.0)
+    tuberosity = _ellipsoid(p, ISCHIAL_TUBEROSITY, _v(12.0, 14.0, 18.0))
+    solid = _blend(5.0, body, wing, *crest, ilium, *spines, superior_ramus, pubis,
+                   inferior_ramus, ischium, tuberosity)
+    # The acetabulum: a socket 2 mm wider than the femoral head (cartilage space).
+    return np.maximum(solid, -_sphere(p, HIP_CENTRE, 24.0))
+
+
+FEMORAL_HEAD_RADIUS = 22.0
+_SHAFT_TOP = _v(42.0, -4.0, -50.0)
+_SHAFT_MID = _v(26.0, 3.0, -200.0)
+_SHAFT_BOTTOM = _v(10.0, 0.0, -340.0)
+_CONDYLE_RADII = _v(16.0, 27.0, 24.0)
+MEDIAL_CONDYLE = _v(-14.0, -8.0, -395.0)
+LATERAL_CONDYLE = _v(28.0, -8.0, -395.0)
+
+
+def _femur(p):
+    head = _sphere(p, HIP_CENTRE, FEMORAL_HEAD_RADIUS)
+    neck = _round_cone(p, HIP_CENTRE, _v(40.0, -6.0, -42.0), 14.5, 17.0)
+    greater_trochanter = _ellipsoid(p, _v(50.0, -9.0, -30.0), _v(13.0, 19.0, 24.0))
+    lesser_trochanter = _sphere(p, _v(28.0, -17.0, -74.0), 8.0)
+    shaft = _blend(8.0, _round_cone(p, _SHAFT_TOP, _SHAFT_MID, 16.0, 14.0),
+                   _round_cone(p, _SHAFT_MID, _SHAFT_BOTTOM, 14.0, 15.0))
+    linea_aspera = _round_cone(p, _v(34.0, -14.0, -110.0), _v(18.0, -12.0, -290.0), 5.0, 5.0)
+    metaphysis = _ellipsoid(p, _v(8.0, -2.0, -345.0), _v(28.0, 20.0, 40.0))
+    condyles = [_ellipsoid(p, MEDIAL_CONDYLE, _CONDYLE_RADII),
+                _ellipsoid(p, LATERAL_CONDYLE, _CONDYLE_RADII)]
+    trochlea = _ellipsoid(p, _v(7.0, 10.0, -378.0), _v(30.0, 14.0, 22.0))
+    epicondyles = [_sphere(p, _v(-27.0, -5.0, -386.0), 9.0), _sphere(p, _v(41.0, -5.0, -386.0), 8.0)]
+    return _blend(6.0, head, neck, greater_trochanter, lesser_trochanter, shaft, linea_aspera,
+                  metaphysis, *condyles, trochlea, *epicondyles)
+
+
+TIBIAL_TUBEROSITY = _v(8.0, 24.0, -468.0)
+FIBULAR_HEAD = _v(44.0, -18.0, -460.0)
+
+
+def _tibia(p):
+    plateau = _ellipsoid(p, _v(7.0, -4.0, -433.0), _v(40.0, 28.0, 11.0))
+    condyles = _ellipsoid(p, _v(7.0, -4.0, -448.0), _v(35.0, 25.0, 20.0))
+    tuberosity = _ellipsoid(p, TIBIAL_TUBEROSITY + _v(0.0, -4.0, 0.0), _v(9.0, 8.0, 15.0))
+    # The head of the fibula, fused to the tibia in this demo, carries the biceps insertion.
+    fibular_head = _sphere(p, FIBULAR_HEAD, 10.0)
+    shaft = _round_cone(p, _v(7.0, 0.0, -455.0), _v(3.0, 3.0, -760.0), 17.0, 11.0)
+    distal = _ellipsoid(p, _v(2.0, 3.0, -770.0), _v(22.0, 20.0, 17.0))
+    malleolus = _sphere(p, _v(-16.0, 5.0, -785.0), 9.0)
+    return _blend(6.0, plateau, condyles, tuberosity, fibular_head, shaft, distal, malleolus)
+
+
+_BONE_FIELDS = {"pelvis": _pelvis, "femur": _femur, "tibia": _tibia}
+_BONE_BOXES = {  # (lower, upper) corners enclosing each bone (mm)
+    "pelvis": (_v(-100.0, -110.0, -100.0), _v(60.0, 75.0, 135.0)),
+    "femur": (_v(-50.0, -45.0, -430.0), _v(75.0, 40.0, 30.0)),
+    "tibia": (_v(-45.0, -40.0, -800.0), _v(60.0, 40.0, -415.0)),
+}
+
+
+def bone_field(name: str, points) -> np.ndarray:
+    """Implicit function of a demo bone at ``points`` (n, 3) mm: negative inside, zero on the
+    surface, roughly the signed distance (mm) near it. ``name``: pelvis, femur or tibia."""
+    return _BONE_FIELDS[name](np.asarray(points, dtype=np.float64).reshape(-1, 3))
+
+
+def project_to_bone(name: str, point, steps: int = 8) -> np.ndarray:
+    """The point of the bone's implicit surface reached from ``point`` (mm) by Newton steps
+    along the field's gradient (for landmarks within a few mm of the surface)."""
+    x = np.asarray(point, dtype=np.float64).copy()
+    h = 1e-4
+    for _ in range(steps):
+        f = bone_field(name, x)[0]
+        grad = (bone_field(name, x + h * np.eye(3)) - f) / h
+        x = x - f * grad / (grad @ grad)
+    return x
+
+
+# ---- marching tetrahedra -------------------------------------------------------------------
+
+# Freudenthal subdivision: one tetrahedron per permutation of the axes, walking from corner
+# (0,0,0) to (1,1,1). All cubes use the same six, so the tetrahedra of neighbouring cubes share
+# faces and the piecewise-linear level set has no cracks.
+_CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+
+
+def _freudenthal_tetrahedra():
+    tets = []
+    for order in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        corner = np.zeros(3, dtype=int)
+        path = [0]
+        for axis in order:
+            corner[axis] = 1
+            path.append(int(corner[0] * 4 + corner[1] * 2 + corner[2]))
+        tets.append(path)
+    return np.array(tets)
+
+
+def _tetrahedron_cases():
+    """(16, 2, 3, 2): for each inside/outside pattern of the 4 corners, up to two triangles,
+    each as three crossing edges given by their two corner numbers (-1: no triangle)."""
+    table = np.full((16, 2, 3, 2), -1)
+    for code in range(1, 15):
+        inside = [c for c in range(4) if code >> c & 1]
+        outside = [c for c in range(4) if not code >> c & 1]
+        if len(inside) == 2:
+            (a, b), (c, d) = inside, outside
+            table[code, 0] = [(a, c), (a, d), (b, d)]
+            table[code, 1] = [(a, c), (b, d), (b, c)]
+        else:
+            lone = inside[0] if len(inside) == 1 else outside[0]
+            table[code, 0] = [(lone, o) for o in range(4) if o != lone]
+    return table
+
+
+_TETRAHEDRA = _freudenthal_tetrahedra()
+_CASES = _tetrahedron_cases()
+
+
+def mesh_implicit(field, lower, upper, spacing) -> Surface:
+    """Closed, manifold, outward triangle surface of ``{x : field(x) < 0}`` by marching tetrahedra.
+
+    Parameters
+    ----------
+    field : callable, (n, 3) float64 mm -> (n,) float64, negative inside
+    lower, upper : (3,) corners of a box (mm) on whose faces ``field`` is positive
+    spacing : grid step (mm)
+
+    Only the largest connected piece is kept. Vertices lie on the grid edges where the field
+    changes sign, placed on its zero by regula falsi.
+    """
+    lower = np.asarray(lower, dtype=np.float64)
+    shape = np.ceil((np.asarray(upper) - lower) / spacing).astype(np.int64) + 1
+    axes = [lower[d] + spacing * np.arange(shape[d]) for d in range(3)]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    values = field(nodes)
+    # A zero at a node would let several crossing edges share one vertex (a non-manifold pinch).
+    values[values == 0.0] = 1e-12
+    inside = values < 0.0
+
+    strides = np.array([shape[1] * shape[2], shape[2], 1])
+    cube_origins = np.arange(nodes.shape[0]).reshape(shape)[:-1, :-1, :-1].reshape(-1)
+    corners = cube_origins[:, None] + (_CORNERS @ strides)[None, :]
+    corner_inside = inside[corners]
+    mixed = corner_inside.any(axis=1) & ~corner_inside.all(axis=1)
+    tets = corners[mixed][:, _TETRAHEDRA].reshape(-1, 4)
+    code = (inside[tets] * (1 << np.arange(4))).sum(axis=1)
+
+    edge_a, edge_b = [], []
+    for slot in range(2):
+        has = _CASES[code, slot, 0, 0] >= 0
+        local = _CASES[code[has], slot]                       # (k, 3, 2)
+        rows = np.arange(has.sum())[:, None]
+        edge_a.append(tets[has][rows, local[:, :, 0]])
+        edge_b.append(tets[has][rows, local[:, :, 1]])
+    edge_a = np.concatenate(edge_a)
+    edge_b = np.concatenate(edge_b)
+    # Name each crossing edge by its inside node then its outside node.
+    first_inside = inside[edge_a]
+    inner = np.where(first_inside, edge_a, edge_b)
+    outer = np.where(first_inside, edge_b, edge_a)
+    keys = inner * nodes.shape[0] + outer
+    unique_keys, triangles = np.unique(keys, return_inverse=True)
+    triangles = triangles.reshape(-1, 3)
+    n_in, n_out = unique_keys // nodes.shape[0], unique_keys % nodes.shape[0]
+
+    lo_t, hi_t = np.zeros(len(unique_keys)), np.ones(len(unique_keys))
+    lo_f, hi_f = values[n_in], values[n_out]
+    p_in, p_out = nodes[n_in], nodes[n_out]
+    t = lo_f / (lo_f - hi_f)
+    linear = p_in + t[:, None] * (p_out - p_in)
+    # Orient by the linear interpolant, whose level set in a tetrahedron is exactly the planar
+    # triangle: its normal must point from the inside node to the outside node.
+    normals = np.cross(linear[triangles[:, 1]] - linear[triangles[:, 0]],
+                       linear[triangles[:, 2]] - linear[triangles[:, 0]])
+    e = triangles[:, 0]
+    flip = np.einsum("ij,ij->i", normals, p_out[e] - p_in[e]) < 0.0
+    triangles[flip] = triangles[flip][:, ::-1]
+    for _ in range(4):
+        f = field(p_in + t[:, None] * (p_out - p_in))
+        below = f < 0.0
+        lo_t, lo_f = np.where(below, t, lo_t), np.where(below, f, lo_f)
+        hi_t, hi_f = np.where(below, hi_t, t), np.where(below, hi_f, f)
+        t = lo_t + (hi_t - lo_t) * lo_f / (lo_f - hi_f)
+    points = p_in + t[:, None] * (p_out - p_in)
+    return _largest_piece(points, triangles)
+
+
+def _largest_piece(points, triangles) -> Surface:
+    n = len(points)
+    rows = np.concatenate([triangles[:, 0], triangles[:, 1]])
+    cols = np.concatenate([triangles[:, 1], triangles[:, 2]])
+    _, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)),
+                                    directed=False)
+    keep = label == np.argmax(np.bincount(label[triangles[:, 0]], minlength=label.max() + 1))
+    new_index = np.cumsum(keep) - 1
+    kept = triangles[keep[triangles[:, 0]]]
+    return Surface(points[keep].copy(), new_index[kept].astype(np.int64))
+
+
+def bone_surface(name: str, spacing: float = 3.0) -> Surface:
+    """The closed surface of a demo bone meshed with grid step ``spacing`` (mm)."""
+    lower, upper = _BONE_BOXES[name]
+    return mesh_implicit(_BONE_FIELDS[name], lower, upper, spacing)
+
+
+# ---- muscles -------------------------------------------------------------------------------
+
+def _thigh_axis(z):
+    """Point (n, 3) of the femoral shaft axis, extended, at heights ``z`` (mm)."""
+    s = (np.asarray(z, dtype=np.float64) - _SHAFT_TOP[2]) / (_SHAFT_BOTTOM[2] - _SHAFT_TOP[2])
+    return _SHAFT_TOP + s[:, None] * (_SHAFT_BOTTOM - _SHAFT_TOP)
+
+
+def _around(z, theta_deg, rho):
+    """The point at height ``z``, ``rho`` mm from the thigh axis in direction ``theta_deg``
+    (0 lateral, 90 anterior, 180 medial, 270 posterior)."""
+    a = np.radians(theta_deg)
+    return _thigh_axis(np.array([z]))[0] + rho * np.array([np.cos(a), np.sin(a), 0.0])
+
+
+@dataclass(frozen=True)
+class _MuscleSpec:
+    origin_bone: str
+    origin: np.ndarray          # landmark near the origin (projected onto the bone)
+    insertion_bone: str
+    insertion: np.ndarray
+    waypoints: tuple            # interior centreline points (mm), z decreasing
+    radial: float               # belly semi-axis across the thigh (mm)
+    tangential: float           # belly semi-axis around the thigh (mm)
+    peak: float = 0.5           # where along the muscle (0 origin, 1 insertion) the belly peaks
+    fullness: float = 0.6       # exponent of the belly profile: small = long full belly
+
+
+_MUSCLES = {
+    "rectus_femoris": _MuscleSpec(
+        "pelvis", AIIS + _v(0.0, 2.0, -6.0), "tibia", TIBIAL_TUBEROSITY + _v(0.0, 6.0, 4.0),
+        (_around(-60.0, 80.0, 44.0), _around(-200.0, 90.0, 47.0), _around(-320.0, 92.0, 44.0),
+         _v(8.0, 44.0, -392.0)),
+        radial=15.0, tangential=21.0, peak=0.45),
+    "vastus_lateralis": _MuscleSpec(
+        "femur", _v(62.0, -2.0, -56.0), "tibia", TIBIAL_TUBEROSITY + _v(6.0, 6.0, 8.0),
+        (_around(-120.0, 8.0, 38.0), _around(-230.0, 10.0, 38.0), _around(-330.0, 30.0, 36.0),
+         _v(22.0, 40.0, -395.0)),
+        radial=17.0, tangential=30.0, peak=0.42, fullness=0.5),
+    "vastus_intermedius": _MuscleSpec(
+        "femur", _v(50.0, 14.0, -85.0), "tibia", TIBIAL_TUBEROSITY + _v(0.0, 4.0, 12.0),
+        (_around(-150.0, 60.0, 25.0), _around(-250.0, 75.0, 25.0), _around(-330.0, 90.0, 28.0),
+         _v(7.0, 38.0, -390.0)),
+        radial=11.0, tangential=26.0, peak=0.45, fullness=0.5),
+    "vastus_medialis": _MuscleSpec(
+        "femur", _v(20.0, -8.0, -95.0), "tibia", TIBIAL_TUBEROSITY + _v(-6.0, 6.0, 8.0),
+        (_around(-160.0, 175.0, 30.0), _around(-280.0, 150.0, 34.0), _around(-350.0, 125.0, 36.0),
+         _v(-8.0, 40.0, -396.0)),
+        radial=17.0, tangential=26.0, peak=0.68, fullness=0.7),
+    "sartorius": _MuscleSpec(
+        "pelvis", ASIS + _v(0.0, 0.0, -6.0), "tibia", _v(-24.0, 14.0, -482.0),
+        (_around(0.0, 75.0, 58.0), _around(-100.0, 112.0, 63.0), _around(-200.0, 145.0, 64.0),
+         _around(-300.0, 175.0, 60.0), _around(-385.0, 200.0, 50.0), _v(-38.0, -6.0, -440.0)),
+        radial=6.0, tangential=15.0, fullness=0.3),
+    "gracilis": _MuscleSpec(
+        "pelvis", PUBIC_BODY + _v(-4.0, -6.0, -26.0), "tibia", _v(-26.0, 10.0, -488.0),
+        (_around(-130.0, 190.0, 62.0), _around(-250.0, 198.0, 57.0), _around(-360.0, 210.0, 48.0),
+         _v(-42.0, -12.0, -440.0)),
+        radial=7.0, tangential=13.0, peak=0.4, fullness=0.4),
+    "adductor_longus": _MuscleSpec(
+        "pelvis", PUBIC_BODY + _v(4.0, 2.0, -4.0), "femur", _v(22.0, -17.0, -230.0),
+        (_around(-100.0, 165.0, 48.0), _around(-160.0, 195.0, 36.0), _around(-205.0, 235.0, 24.0)),
+        radial=11.0, tangential=20.0, peak=0.4),
+    "adductor_brevis": _MuscleSpec(
+        "pelvis", PUBIC_BODY + _v(2.0, -10.0, -18.0), "femur", _v(32.0, -17.0, -140.0),
+        (_around(-85.0, 200.0, 38.0), _around(-120.0, 235.0, 24.0)),
+        radial=10.0, tangential=15.0, peak=0.4),
+    "adductor_magnus": _MuscleSpec(
+        "pelvis", ISCHIAL_TUBEROSITY + _v(-10.0, 6.0, -8.0), "femur", _v(-24.0, -6.0, -362.0),
+        (_around(-140.0, 220.0, 42.0), _around(-240.0, 215.0, 32.0), _around(-320.0, 195.0, 28.0)),
+        radial=19.0, tangential=28.0, peak=0.4, fullness=0.5),
+    "semitendinosus": _MuscleSpec(
+        "pelvis", ISCHIAL_TUBEROSITY + _v(-4.0, -6.0, -6.0), "tibia", _v(-28.0, 6.0, -494.0),
+        (_around(-150.0, 248.0, 58.0), _around(-280.0, 238.0, 56.0), _around(-380.0, 220.0, 46.0),
+         _v(-40.0, -18.0, -440.0)),
+        radial=12.0, tangential=14.0, peak=0.4),
+    "semimembranosus": _MuscleSpec(
+        "pelvis", ISCHIAL_TUBEROSITY + _v(6.0, -4.0, -10.0), "tibia", _v(-22.0, -20.0, -446.0),
+        (_around(-170.0, 245.0, 38.0), _around(-300.0, 232.0, 40.0), _around(-380.0, 222.0, 36.0)),
+        radial=14.0, tangential=20.0, peak=0.6),
+    "biceps_femoris_long_head": _MuscleSpec(
+        "pelvis", ISCHIAL_TUBEROSITY + _v(2.0, -8.0, -4.0), "tibia", FIBULAR_HEAD + _v(0.0, -4.0, 6.0),
+        (_around(-150.0, 272.0, 50.0), _around(-280.0, 295.0, 48.0), _around(-370.0, 320.0, 44.0)),
+        radial=14.0, tangential=18.0, peak=0.45),
+    "biceps_femoris_short_head": _MuscleSpec(
+        "femur", _v(28.0, -16.0, -210.0), "tibia", FIBULAR_HEAD + _v(-2.0, -2.0, 8.0),
+        (_around(-280.0, 295.0, 26.0), _around(-360.0, 318.0, 30.0)),
+        radial=9.0, tangential=14.0, peak=0.5),
+}
+
+_TENDON = 2.5        # semi-axis of the muscle's cross-section at origin and insertion (mm)
+_CAP = 3.0           # length of the rounded end cap beyond origin and insertion (mm)
+_FIBRE_DEPTH = 0.9   # the outer ring of fibres lies at this fraction of the way to the surface
+_OVERLAP = 0.03      # neighbours overlap by this fraction of their semi-axes along a shared face
+_BONE_CONTACT = 0.3  # muscles press this far (mm) into the bones they lie against
+_ATTACHMENT_DEPTH = 5.0  # ...and up to this far (mm) at their attachments
+_ATTACHMENT_REACH = 15.0  # over this distance (mm) around the attachment point
+
+
+class _Envelope:
+    """A muscle's centreline and elliptic fusiform cross-section as functions of height z."""
+
+    def __init__(self, origin, insertion, waypoints, spec):
+        knots = np.vstack([origin, *waypoints, insertion])
+        if (np.diff(knots[:, 2]) >= 0).any():
+            raise MuscleMSSError("demo muscle way-points must descend from origin to insertion")
+        self.z_origin, self.z_insertion = origin[2], insertion[2]
+        self.length = self.z_origin - self.z_insertion
+        self.spec = spec
+        self.z_top, self.z_bottom = self.z_origin + _CAP, self.z_insertion - _CAP
+        # Tabulated finely once: every field evaluation interpolates these instead of the spline.
+        self._z = np.linspace(self.z_bottom, self.z_top, int(np.ceil((self.z_top - self.z_bottom) / 0.25)) + 1)
+        xy = PchipInterpolator(knots[::-1, 2], knots[::-1, :2], extrapolate=True)(self._z)
+        radial = xy - _thigh_axis(self._z)[:, :2]
+        self._table = np.column_stack([xy, radial / np.linalg.norm(radial, axis=1)[:, None]])
+
+    def _lookup(self, z, column):
+        return np.interp(z, self._z, self._table[:, column])
+
+    def centre(self, z):
+        z = np.asarray(z, dtype=np.float64)
+        return np.column_stack([self._lookup(z, 0), self._lookup(z, 1), z])
+
+    def radial_direction(self, z):
+        d = np.column_stack([self._lookup(z, 2), self._lookup(z, 3)])
+        return d / np.linalg.norm(d, axis=1)[:, None]
+
+    def semi_axes(self, z):
+        """(radial, tangential) semi-axes (mm) at heights z; 0 outside the muscle."""
+        z = np.asarray(z, dtype=np.float64)
+        u = (self.z_origin - z) / self.length
+        inner = np.clip(u, 0.0, 1.0) ** (np.log(0.5) / np.log(self.spec.peak))
+        bell = np.sin(np.pi * inner) ** self.spec.fullness
+        beyond = np.maximum(np.maximum(z - self.z_origin, self.z_insertion - z), 0.0)
+        cap = np.sqrt(np.clip(1.0 - (beyond / _CAP) ** 2, 0.0, 1.0))
+        radial = (_TENDON + (self.spec.radial - _TENDON) * bell) * cap
+        tangential = (_TENDON + (self.spec.tangential - _TENDON) * bell) * cap
+        return radial, tangential
+
+    def elliptic_distance(self, points):
+        """Normalised elliptic distance of ``points`` (n, 3) from the centreline in their own
+        horizontal slice: 1 on the envelope; inf above or below the muscle."""
+        z = points[:, 2]
+        within = (z < self.z_top) & (z > self.z_bottom)
+        out = np.full(len(points), np.inf)
+        if within.any():
+            zw = z[within]
+            offset = points[within, :2] - self.centre(zw)[:, :2]
+            radial_dir = self.radial_direction(zw)
+            a, b = self.semi_axes(zw)
+            along = np.einsum("ij,ij->i", offset, radial_dir)
+            across = offset[:, 1] * radial_dir[:, 0] - offset[:, 0] * radial_dir[:, 1]
+            out[within] = np.hypot(along / a, across / b)
+        return out
+
+
+def _muscle_field(name, envelopes, spec):
+    """Implicit function of one muscle: inside its envelope, on its side of every neighbour,
+    outside the bones except near its attachments."""
+    own = envelopes[name]
+    others = [e for n, e in envelopes.items() if n != name]
+    attachments = {}
+    for bone, point in ((spec.origin_bone, own.centre(np.array([own.z_origin]))[0]),
+                        (spec.insertion_bone, own.centre(np.array([own.z_insertion]))[0])):
+        attachments.setdefault(bone, []).append(point)
+
+    def field(points):
+        mine = own.elliptic_distance(points)
+        f = mine - 1.0
+        if others:
+            nearest_other = np.min([e.elliptic_distance(points) for e in others], axis=0)
+            f = np.maximum(f, mine - nearest_other - _OVERLAP)
+        for bone in BONE_NAMES:
+            lower, upper = _BONE_BOXES[bone]
+            near = (points >= lower - 5.0).all(axis=1) & (points <= upper + 5.0).all(axis=1)
+            if not near.any():
+                continue
+            allowed = np.full(near.sum(), _BONE_CONTACT)
+            for a in attachments.get(bone, ()):
+                closeness = np.clip(1.0 - np.linalg.norm(points[near] - a, axis=1) / _ATTACHMENT_REACH,
+                                    0.0, 1.0)
+                allowed = np.maximum(allowed, _ATTACHMENT_DEPTH * closeness)
+            f[near] = np.maximum(f[near], -bone_field(bone, points[near]) - allowed)
+        return f
+
+    return field
+
+
+def _cast(field, origins, directions, reach, samples=24, halvings=14):
+    """Distance (mm) along each ray from ``origins`` (r, 3) in unit ``directions`` (r, 3) to the
+    first point where ``field`` >= 0; ``reach`` (r,) must lie beyond that point."""
+    steps = reach[:, None] * (np.arange(1, samples + 1) / samples)[None, :]
+    values = field((origins[:, None, :] + steps[..., None] * directions[:, None, :]).reshape(-1, 3))
+    outside = values.reshape(steps.shape) >= 0.0
+    first = np.argmax(outside, axis=1)
+    rows = np.arange(len(origins))
+    hi = steps[rows, first]
+    lo = np.where(first > 0, steps[rows, np.maximum(first - 1, 0)], 0.0)
+    for _ in range(halvings):
+        mid = 0.5 * (lo + hi)
+        below = field(origins + mid[:, None] * directions) < 0.0
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def _slice_rays(envelope, z, guide):
+    """Rays in the horizontal slices at heights ``z`` (k,) from the centreline, one per guide
+    point (m, 2) on the unit circle, spread like the envelope's ellipse.
+
+    Returns origins (k*m, 3), unit directions (k*m, 3) and the envelope radius along each
+    direction (k*m,), all in mm.
+    """
+    centre = envelope.centre(z)
+    radial = envelope.radial_direction(z)
+    tangential = np.column_stack([-radial[:, 1], radial[:, 0]])
+    a, b = envelope.semi_axes(z)
+    a, b = np.maximum(a, 1e-3), np.maximum(b, 1e-3)
+    d = (guide[None, :, 0, None] * a[:, None, None] * radial[:, None, :]
+         + guide[None, :, 1, None] * b[:, None, None] * tangential[:, None, :])
+    d = d / np.linalg.norm(d, axis=2, keepdims=True)
+    along = np.einsum("kmj,kj->km", d, radial)
+    across = np.einsum("kmj,kj->km", d, tangential)
+    reach = 1.0 / np.hypot(along / a[:, None], across / b[:, None])
+    directions = np.concatenate([d, np.zeros(d.shape[:2] + (1,))], axis=2).reshape(-1, 3)
+    origins = np.repeat(centre, guide.shape[0], axis=0)
+    return origins, directions, reach.reshape(-1)
+
+
+def _tube_triangles(rings, ring_vertices):
+    """Triangles (outward for rings stacked top to bottom, counter-clockwise seen from above)
+    of a tube of ``rings`` rings capped by a top pole (index 0) and a bottom pole (last)."""
+    m = ring_vertices
+    k = np.arange(m)
+    ring = lambda r: 1 + r * m + k                          # noqa: E731
+    top = np.column_stack([np.zeros(m, dtype=np.int64), ring(0), ring(0)[(k + 1) % m]])
+    bottom_pole = 1 + rings * m
+    bottom = np.column_stack([np.full(m, bottom_pole), ring(rings - 1)[(k + 1) % m], ring(rings - 1)])
+    sides = []
+    for r in range(rings - 1):
+        a, b = ring(r), ring(r + 1)
+        a1, b1 = a[(k + 1) % m], b[(k + 1) % m]
+        sides.append(np.column_stack([a, b1, a1]))
+        sides.append(np.column_stack([a, b, b1]))
+    return np.vstack([top, *sides, bottom]).astype(np.int64)
+
+
+def _square_to_disc(sx, sy):
+    """Map the square [-1, 1]^2 onto the unit disc (keeps the grid's rows and columns apart)."""
+    return sx * np.sqrt(1.0 - sy ** 2 / 2.0), sy * np.sqrt(1.0 - sx ** 2 / 2.0)
+
+
+def _muscle(name, envelopes, size):
+    spec = _MUSCLES[name]
+    envelope = envelopes[name]
+    field = _muscle_field(name, envelopes, spec)
+
+    # Surface: rings in horizontal slices, denser towards the ends where the belly tapers.
+    u = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, size.rings))
+    cap_u = np.array([0.45, 0.8]) * _CAP / envelope.length
+    u = np.concatenate([-cap_u[::-1], u, 1.0 + cap_u])
+    z = envelope.z_origin - u * envelope.length
+    angles = 2.0 * np.pi * np.arange(size.ring_vertices) / size.ring_vertices
+    # Counter-clockwise seen from above, as _tube_triangles expects.
+    guide = np.column_stack([np.cos(angles), np.sin(angles)])
+    origins, directions, reach = _slice_rays(envelope, z, guide)
+    distance = _cast(field, origins, directions, 1.02 * reach)
+    poles = envelope.centre(np.array([envelope.z_top, envelope.z_bottom]))
+    points = np.vstack([poles[:1], origins + distance[:, None] * directions, poles[1:]])
+    triangles = _tube_triangles(len(z), size.ring_vertices)
+
+    # Fibres: a grid (row across the thigh, column around it) mapped onto the cross-section and
+    # carried along the slices from origin (u = 0) to insertion (u = 1).
+    g = size.grid
+    rows, cols = np.meshgrid(np.arange(g), np.arange(g), indexing="ij")
+    sx, sy = _square_to_disc((2.0 * rows.ravel() + 1.0) / g - 1.0, (2.0 * cols.ravel() + 1.0) / g - 1.0)
+    fraction = np.hypot(sx, sy)
+    # The centre fibre of an odd grid may take any direction: its fraction is zero.
+    fibre_guide = np.where(fraction[:, None] > 0.0, np.column_stack([sx, sy]), [1.0, 0.0])
+    fibre_guide = fibre_guide / np.linalg.norm(fibre_guide, axis=1)[:, None]
+    fibre_u = np.linspace(0.0, 1.0, size.fibre_vertices)
+    fibre_z = envelope.z_origin - fibre_u * envelope.length
+    f_origins, f_dirs, f_reach = _slice_rays(envelope, fibre_z, fibre_guide)
+    f_distance = _cast(field, f_origins, f_dirs, 1.02 * f_reach)
+    # Fibres gather towards the tendons so that their ends stay on the attachment area.
+    gather = 1.0 - 0.5 * np.exp(-(fibre_u / 0.04) ** 2) - 0.5 * np.exp(-((1.0 - fibre_u) / 0.04) ** 2)
+    depth = _FIBRE_DEPTH * fraction[None, :] * gather[:, None]
+    fibre_points = f_origins + (depth.reshape(-1) * f_distance)[:, None] * f_dirs
+    # (vertex along the fibre, fibre) -> fibre-major polylines.
+    polylines = fibre_points.reshape(size.fibre_vertices, g * g, 3).transpose(1, 0, 2)
+    fibres = FibreSet.from_polylines(list(polylines), np.column_stack([rows.ravel(), cols.ravel()]))
+    return Surface(points, triangles), fibres
+
+
+def _envelopes(names):
+    envelopes = {}
+    for name in names:
+        spec = _MUSCLES[name]
+        origin = project_to_bone(spec.origin_bone, spec.origin)
+        insertion = project_to_bone(spec.insertion_bone, spec.insertion)
+        envelopes[name] = _Envelope(origin, insertion, spec.waypoints, spec)
+    return envelopes
+
+
+def muscle_attachments(name: str):
+    """``(origin bone, origin point, insertion bone, insertion point)`` of a demo muscle; the
+    points (mm) lie on the bones' implicit surfaces."""
+    spec = _MUSCLES[name]
+    return (spec.origin_bone, project_to_bone(spec.origin_bone, spec.origin),
+            spec.insertion_bone, project_to_bone(spec.insertion_bone, spec.insertion))
+
+
+def demo_scene(size: str = "full") -> Scene:
+    """The demo thigh scene (DESIGN §4).
+
+    ``"full"``: pelvis, femur and tibia, the 13 muscles of :data:`MUSCLE_NAMES` with an 8x8
+    ``fibre_grid`` of 30-vertex fibres each, and a walking cycle of :data:`TIME_POINTS` time
+    points. ``"small"``: the same bones and motion, meshed coarser, with the four muscles of
+    :data:`SMALL_MUSCLE_NAMES` and a 4x4 grid of 12-vertex fibres, for fast tests.
+    Every call returns an identical, newly built scene.
+    """
+    if size not in _SIZES:
+        raise MuscleMSSError(f"demo scene size '{size}' is unknown; choose one of: "
+                             f"{', '.join(_SIZES)}")
+    sizes = _SIZES[size]
+    names = MUSCLE_NAMES if size == "full" else SMALL_MUSCLE_NAMES
+    scene = Scene(motion=gait_motion())
+    for bone in BONE_NAMES:
+        scene.bones[bone] = bone_surface(bone, sizes.bone_spacing)
+    envelopes = _envelopes(names)
+    for name in names:
+        scene.muscles[name], scene.fibres[name] = _muscle(name, envelopes, sizes)
+    return scene

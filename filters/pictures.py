@@ -1,0 +1,116 @@
+"""PNG pictures of a scene for people (DESIGN §7): the demo's ``preview.png``.
+
+pyvista is imported inside the functions only: ParaView's Python has no pyvista, and the filters
+package must import there.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from muscle_mss.core.errors import MuscleMSSError
+
+MUSCLE_COLOURS = (
+    "#d62728", "#ff7f0e", "#bcbd22", "#2ca02c", "#17becf", "#1f77b4", "#9467bd",
+    "#e377c2", "#8c564b", "#7f7f7f", "#aec7e8", "#ffbb78", "#98df8a",
+)
+"""One colour per muscle in block order (repeated beyond 13 muscles)."""
+BONE_COLOUR = "#f5f2ea"
+BLEND_FALLOFF = 20.0
+"""Distance (mm) over which a muscle point's pose blends from its nearest bone to the next."""
+
+
+def _transform(matrix, points):
+    return points @ matrix[:, :3].T + matrix[:, 3]
+
+
+def pose_time(motion, time=None) -> float:
+    """The time (s) shown as the moving pose: ``time`` itself, or, when None, the time point
+    at which the bones are rotated farthest from the rest pose in total (mid-swing in the demo
+    walking cycle, where the knee is flexed most)."""
+    if time is not None:
+        return float(time)
+    traces = np.trace(motion.matrices[:, :, :, :3], axis1=2, axis2=3)
+    angles = np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)).sum(axis=1)
+    return float(motion.times[int(np.argmax(angles))])
+
+
+def _matrices_at(motion, time):
+    """Bone transforms (B, 3, 4) at ``time`` (s), linearly interpolated and clamped; good
+    enough for a picture (the pose filter interpolates rotations properly)."""
+    t = np.clip(time, motion.times[0], motion.times[-1])
+    i = int(np.clip(np.searchsorted(motion.times, t) - 1, 0, max(len(motion.times) - 2, 0)))
+    if len(motion.times) == 1:
+        return motion.matrices[0]
+    w = (t - motion.times[i]) / (motion.times[i + 1] - motion.times[i])
+    return (1.0 - w) * motion.matrices[i] + w * motion.matrices[i + 1]
+
+
+def posed_points(scene, points, matrices) -> np.ndarray:
+    """Move muscle or fibre ``points`` (n, 3) mm by a blend of the bone ``matrices`` (B, 3, 4)
+    weighted by closeness to each bone's rest surface (a picture's approximation of the pose
+    filter's blending)."""
+    names = list(scene.motion.bones)
+    distances = np.column_stack([cKDTree(scene.bones[b].points).query(points)[0] for b in names])
+    weights = np.exp(-(distances - distances.min(axis=1, keepdims=True)) / BLEND_FALLOFF)
+    weights /= weights.sum(axis=1, keepdims=True)
+    moved = np.stack([_transform(m, points) for m in matrices], axis=1)
+    return np.einsum("nb,nbj->nj", weights, moved)
+
+
+def scene_preview(scene, path, time=None, window_size=(1600, 1100)) -> str:
+    """Write a PNG of ``scene`` to ``path``: the rest pose beside the pose at ``time`` (s;
+    default :func:`pose_time`). Bones are white and posed by their matrices, muscles in
+    distinct colours and their fibres in black are moved by a blend of the bone transforms.
+
+    Returns the path written.
+    """
+    import pyvista
+
+    if scene.motion is None:
+        raise MuscleMSSError("scene has no motion; the preview shows the rest and a moved pose")
+    missing = [b for b in scene.motion.bones if b not in scene.bones]
+    if missing:
+        raise MuscleMSSError(f"motion names bones that the scene lacks: {', '.join(missing)}")
+    shown = pose_time(scene.motion, time)
+    pyvista.OFF_SCREEN = True
+    plotter = pyvista.Plotter(off_screen=True, shape=(1, 2), window_size=list(window_size),
+                              border=False)
+    rest = np.stack([np.hstack([np.eye(3), np.zeros((3, 1))])] * len(scene.motion.bones))
+    for column, (matrices, title) in enumerate(((rest, "rest pose"),
+                                                (_matrices_at(scene.motion, shown),
+                                                 f"t = {shown:.2f} s"))):
+        plotter.subplot(0, column)
+        plotter.set_background("#30343c")
+        plotter.add_text(title, font_size=12, color="white")
+        for b, name in enumerate(scene.motion.bones):
+            bone = scene.bones[name]
+            plotter.add_mesh(_surface_mesh(pyvista, _transform(matrices[b], bone.points),
+                                           bone.triangles),
+                             color=BONE_COLOUR, smooth_shading=True)
+        for m, (name, muscle) in enumerate(scene.muscles.items()):
+            colour = MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)]
+            plotter.add_mesh(_surface_mesh(pyvista, posed_points(scene, muscle.points, matrices),
+                                           muscle.triangles),
+                             color=colour, opacity=0.75, smooth_shading=True)
+            fibres = scene.fibres.get(name)
+            if fibres is not None and fibres.count:
+                plotter.add_mesh(_polylines(pyvista, posed_points(scene, fibres.points, matrices),
+                                            fibres.offsets), color="black", line_width=1)
+        plotter.camera_position = [(900.0, 700.0, 50.0), (10.0, 0.0, -330.0), (0.0, 0.0, 1.0)]
+        plotter.camera.zoom(1.15)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return str(path)
+
+
+def _surface_mesh(pyvista, points, triangles):
+    faces = np.column_stack([np.full(len(triangles), 3), triangles]).reshape(-1)
+    return pyvista.PolyData(np.asarray(points, dtype=np.float64), faces)
+
+
+def _polylines(pyvista, points, offsets):
+    sizes = np.diff(offsets)
+    cells = np.concatenate([np.concatenate([[n], np.arange(o, o + n)])
+                            for o, n in zip(offsets[:-1], sizes)])
+    return pyvista.PolyData(np.asarray(points, dtype=np.float64), lines=cells)
