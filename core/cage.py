@@ -131,12 +131,15 @@ def muscle_cage(rest_positions, boundary, fibre_id, fibre_index, fibre_grid=None
     else:
         vertices, triangles = _hull_surface(rest_positions, np.flatnonzero(boundary), where)
         kind = CONVEX_HULL
-    volume = signed_volume(rest_positions[vertices], triangles)
+    corners = rest_positions[vertices]
+    volume = signed_volume(corners, triangles)
     if volume < 0.0:
         triangles = np.ascontiguousarray(triangles[:, ::-1])
-    problems = surface_problems(rest_positions[vertices], triangles)
-    if volume == 0.0 or problems:
-        why = problems[0] if problems else "encloses no volume"
+    size = float(np.linalg.norm(corners.max(axis=0) - corners.min(axis=0)))
+    flat = abs(volume) <= 1e-9 * size ** 3
+    problems = [] if flat else surface_problems(corners, triangles)
+    if flat or problems:
+        why = "encloses no volume" if flat else problems[0]
         raise MuscleMSSError(f"{where}: the {kind} cage of its {len(vertices)} boundary particles "
                              f"{why}; the particles must span a solid, not a sheet or a line")
     return Cage(vertices, triangles, kind)
