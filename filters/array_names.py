@@ -27,6 +27,9 @@ DAMPING = "damping"                  # float64, N s/mm
 FIBRE_LENGTH = "fibre_length"        # float64, mm
 FIBRE_STRAIN = "fibre_strain"        # float64, length / rest length - 1
 
+# Columns of the Volume-Error Probe's table (besides the field-data names below).
+MUSCLE = "muscle"                    # string, the muscle (block) name; last row "mean"
+
 # Field data.
 MUSCLE_NAME = "muscle_name"          # string, the block name
 BONE_NAMES = "bone_names"            # string x B, order of the bone_weights components
