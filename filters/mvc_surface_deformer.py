@@ -1,0 +1,229 @@
+"""MVC Surface Deformer: the muscle surfaces and fibres follow the solved particles (paper §3.2).
+
+Each muscle's cage (:mod:`muscle_mss.core.cage`) is built from the rest model's boundary
+particles, and the mean value coordinates (:mod:`muscle_mss.core.mvc`) of every rest surface
+vertex are computed once. They are kept while the rest inputs (RestSurfaces, RestModel) are
+unchanged: a new time point changes only SolvedModel, and each deformed vertex is then one
+weighted sum of the current cage positions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from vtkmodules.vtkFiltersCore import vtkPolyDataNormals
+
+from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
+from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
+
+from . import array_names as A
+from . import vtk_arrays as V
+from .base import MuscleFilter, Port
+
+# Share of the progress bar taken by the weights when they are (re)computed.
+_WEIGHTS_PROGRESS = 0.9
+
+
+@dataclass(frozen=True)
+class MuscleBinding:
+    """What one muscle's deformation needs from the rest inputs, computed once.
+
+    ``weights`` (v, m) float64: MVC of the v rest surface vertices w.r.t. the m cage vertices
+    (``8 v m`` bytes); ``order``, ``offsets``, ``fibre_ids``: the fibres as from
+    :func:`~muscle_mss.core.cage.fibre_polylines`; ``rest_lengths`` (F,) mm.
+    """
+
+    surface: object
+    rest_points: np.ndarray
+    rest_positions: np.ndarray
+    cage: Cage
+    weights: np.ndarray
+    order: np.ndarray
+    offsets: np.ndarray
+    fibre_ids: np.ndarray
+    fibre_grid: np.ndarray | None
+    rest_lengths: np.ndarray
+
+
+class MVCSurfaceDeformer(MuscleFilter):
+    """Deformed muscle surfaces (by mean value coordinates) and fibres from the solved model.
+
+    ``weight_computations`` counts how many times the weights were computed: once, and again
+    only after a change of RestSurfaces or RestModel.
+    """
+
+    LABEL = "MVC Surface Deformer"
+    HELP = ("Moves each rest muscle surface with its particles: every surface vertex keeps its "
+            "mean value coordinates (Ju, Schaefer and Warren 2005) with respect to a cage "
+            "through the muscle's boundary particles (the lattice surface when the fibres have "
+            "a fibre_grid, else the convex hull of the boundary particles). The coordinates are "
+            "computed once from the rest surfaces and the rest model and reused at every time "
+            "point. Outputs the deformed surfaces with recomputed normals and point data "
+            "displacement (mm), and each muscle's fibres as polylines through its particles "
+            "with cell data fibre_length (mm) and fibre_strain (length / rest length - 1).")
+    INPUTS = (
+        Port("SolvedModel", "vtkMultiBlockDataSet",
+             "the MSS Collision Solver's model: one block per muscle, points = current "
+             "particle positions, point data rest_position, fibre_id, fibre_index"),
+        Port("RestSurfaces", "vtkMultiBlockDataSet",
+             "muscles.vtm: the closed rest surface of each muscle"),
+        Port("RestModel", "vtkMultiBlockDataSet",
+             "the Spring Builder's model (rest pose): point data rest_position, fibre_id, "
+             "fibre_index, boundary, optional fibre_grid; unchanged over time, so the "
+             "coordinates computed from it are kept"),
+    )
+    OUTPUTS = (
+        Port("DeformedSurfaces", "vtkMultiBlockDataSet",
+             "the rest surfaces' triangles at the deformed positions, with normals and point "
+             "data displacement (deformed - rest, mm)"),
+        Port("DeformedFibres", "vtkMultiBlockDataSet",
+             "one polyline per fibre through its particles, cell data fibre_id, fibre_length "
+             "(mm), fibre_strain, fibre_grid when present"),
+    )
+    PROPERTIES = ()
+
+    def __init__(self):
+        super().__init__()
+        self._rest_key = None
+        self._bindings = None
+        self.weight_computations = 0
+
+    # ---- the cached rest-pose side -----------------------------------------------------------
+    def bindings(self, rest_surfaces, rest_model) -> dict:
+        """``{muscle name: MuscleBinding}`` for the rest inputs, computed only when they changed
+        since the last call (key: their modification times)."""
+        key = (_modification_key(rest_surfaces, "RestSurfaces"),
+               _modification_key(rest_model, "RestModel"))
+        if key != self._rest_key:
+            self._bindings = self._bind(rest_surfaces, rest_model)
+            self._rest_key = key
+            self.weight_computations += 1
+        return self._bindings
+
+    def _bind(self, rest_surfaces, rest_model) -> dict:
+        surfaces = dict(V.blocks(rest_surfaces, where="RestSurfaces"))
+        models = V.blocks(rest_model, where="RestModel")
+        if not models:
+            raise MuscleMSSError("RestModel: has no muscle blocks; connect the Spring Builder")
+        bindings = {}
+        for i, (name, model) in enumerate(models):
+            if name not in surfaces:
+                raise MuscleMSSError(f"RestSurfaces: has no block '{name}'; every muscle of "
+                                     "RestModel needs its rest surface (block names must match)")
+            bindings[name] = _bind_muscle(name, surfaces[name], model)
+            if self.progress(_WEIGHTS_PROGRESS * (i + 1) / len(models)):
+                raise MuscleMSSError("aborted while computing the mean value coordinates")
+        extra = [n for n in surfaces if n not in bindings]
+        if extra:
+            raise MuscleMSSError(f"RestSurfaces block '{extra[0]}': RestModel has no muscle of "
+                                 "that name; block names must match")
+        return bindings
+
+    # ---- every time point ----------------------------------------------------------------------
+    def execute(self, inputs, outputs):
+        solved, rest_surfaces, rest_model = inputs
+        bindings = self.bindings(rest_surfaces, rest_model)
+        blocks = V.blocks(solved, where="SolvedModel")
+        names = [n for n, _ in blocks]
+        for name in bindings:
+            if name not in names:
+                raise MuscleMSSError(f"SolvedModel: has no block '{name}'; it must have the "
+                                     "same muscles as RestModel")
+        surfaces, fibres = [], []
+        for name, block in blocks:
+            if name not in bindings:
+                raise MuscleMSSError(f"SolvedModel block '{name}': RestModel has no muscle of "
+                                     "that name; block names must match")
+            surface, polylines = _deform_muscle(name, block, bindings[name])
+            surfaces.append((name, surface))
+            fibres.append((name, polylines))
+        V.fill_multiblock(outputs[0], surfaces)
+        V.fill_multiblock(outputs[1], fibres)
+        self.progress(1.0)
+
+
+def _modification_key(data, where):
+    """Modification times of a multiblock and its leaves: any change to the data changes it."""
+    return (data.GetMTime(),) + tuple(leaf.GetMTime() for _, leaf in V.blocks(data, where))
+
+
+def _bind_muscle(name, surface, model) -> MuscleBinding:
+    where = f"RestModel block '{name}'"
+    rest_positions = V.point_array(model, A.REST_POSITION, where, dtype=np.float64).reshape(-1, 3)
+    if len(rest_positions) == 0:
+        raise MuscleMSSError(f"{where}: has no particles")
+    boundary = V.point_array(model, A.BOUNDARY, where)
+    fibre_id = V.point_array(model, A.FIBRE_ID, where)
+    fibre_index = V.point_array(model, A.FIBRE_INDEX, where)
+    fibre_grid = V.point_array(model, A.FIBRE_GRID, where, required=False)
+    if not np.isfinite(rest_positions).all():
+        raise MuscleMSSError(f"{where}: rest_position has NaN or infinite values")
+    cage = muscle_cage(rest_positions, boundary, fibre_id, fibre_index, fibre_grid, where)
+    surface_where = f"RestSurfaces block '{name}'"
+    rest_points = V.points_of(surface)
+    triangles = V.triangles_of(surface, surface_where)
+    if len(rest_points) == 0 or len(triangles) == 0:
+        raise MuscleMSSError(f"{surface_where}: has no triangles; a muscle surface must be a "
+                             "closed triangle mesh")
+    weights = mean_value_coordinates(rest_positions[cage.vertices], cage.triangles, rest_points,
+                                     where=f"{where}: cage")
+    order, offsets, fibre_ids = fibre_polylines(fibre_id, fibre_index, where)
+    rest_lengths = polyline_lengths(rest_positions, order, offsets)
+    short = np.flatnonzero(rest_lengths <= 0.0)
+    if len(short):
+        raise MuscleMSSError(f"{where}: fibre {int(fibre_ids[short[0]])} has zero rest length; "
+                             "a fibre needs at least two distinct particles")
+    grid = None if fibre_grid is None else \
+        np.asarray(fibre_grid, dtype=np.int32).reshape(-1, 2)[order[offsets[:-1]]]
+    return MuscleBinding(surface, rest_points, rest_positions, cage, weights, order, offsets,
+                         fibre_ids, grid, rest_lengths)
+
+
+def _deform_muscle(name, block, binding: MuscleBinding):
+    where = f"SolvedModel block '{name}'"
+    current = V.points_of(block)
+    if len(current) != len(binding.rest_positions):
+        raise MuscleMSSError(f"{where}: has {len(current)} particles but RestModel has "
+                             f"{len(binding.rest_positions)}; connect the model that was solved")
+    if not np.isfinite(current).all():
+        raise MuscleMSSError(f"{where}: particle positions have NaN or infinite values")
+    rest = V.point_array(block, A.REST_POSITION, where, required=False, dtype=np.float64)
+    if rest is not None:
+        scale = 1e-9 * max(1.0, float(np.abs(binding.rest_positions).max()))
+        if rest.shape != binding.rest_positions.shape or \
+                not np.allclose(rest, binding.rest_positions, rtol=0.0, atol=scale):
+            raise MuscleMSSError(f"{where}: its rest_position differs from RestModel's; the "
+                                 "solved model must come from the same Spring Builder output")
+    deformed = mvc_deform(binding.weights, current[binding.cage.vertices])
+    surface = _with_normals(V.with_points(binding.surface, deformed))
+    V.set_point_array(surface, A.DISPLACEMENT, deformed - binding.rest_points)
+    V.set_field(surface, A.MUSCLE_NAME, name)
+
+    counts = np.diff(binding.offsets)
+    polylines = V.make_polydata(current[binding.order], line_offsets=binding.offsets,
+                                line_connectivity=np.arange(len(binding.order)))
+    lengths = polyline_lengths(current, binding.order, binding.offsets)
+    V.set_cell_array(polylines, A.FIBRE_ID, binding.fibre_ids.astype(np.int32))
+    V.set_cell_array(polylines, A.FIBRE_LENGTH, lengths)
+    V.set_cell_array(polylines, A.FIBRE_STRAIN, lengths / binding.rest_lengths - 1.0)
+    if binding.fibre_grid is not None:
+        V.set_cell_array(polylines, A.FIBRE_GRID, binding.fibre_grid)
+    V.set_point_array(polylines, A.FIBRE_INDEX,
+                      (np.arange(len(binding.order))
+                       - np.repeat(binding.offsets[:-1], counts)).astype(np.int32))
+    V.set_field(polylines, A.MUSCLE_NAME, name)
+    return surface, polylines
+
+
+def _with_normals(polydata):
+    """A new surface with point normals of its current shape (same points and triangles)."""
+    normals = vtkPolyDataNormals()
+    normals.SetInputData(polydata)
+    normals.SplittingOff()
+    normals.ConsistencyOff()
+    normals.AutoOrientNormalsOff()
+    normals.ComputePointNormalsOn()
+    normals.ComputeCellNormalsOff()
+    normals.Update()
+    return normals.GetOutput()
