@@ -3,13 +3,13 @@
 A fibre is a polyline from origin to insertion. It becomes ``n`` particles: the two end
 particles sit exactly on the fibre's end points and are *fixed* (tendon attachment, §3.2).
 The fibre's arc length ``L`` is cut into ``n - 1`` equal intervals of length ``h = L / (n - 1)``,
-numbered ``0 .. n - 2``; interval ``k`` is ``[k h, (k + 1) h]``. Particle ``k`` (``0 <= k <= n - 2``)
-lies in interval ``k``: the origin particle at its start, every free particle ``1 .. n - 2`` at a
-uniformly random arc-length place ``(k + u) h``, ``u`` in ``[0, 1)``; the insertion particle
-``n - 1`` closes the last interval. With randomisation off ``u = 0``, i.e. the particles are the
-interval end points ``k h``. The paper randomises because fibres of about equal length would
-otherwise put their particles in clusters across the muscle, with gaps between them that the
-sphere-based collision detection (§3.3) sees as holes.
+numbered ``0 .. n - 2``; interval ``k`` is ``[k h, (k + 1) h]``. Particle ``k``
+(``0 <= k <= n - 2``) lies in interval ``k``: the origin particle at its start, every free
+particle ``1 .. n - 2`` at a uniformly random arc-length place ``(k + u) h``, ``u`` in ``[0, 1)``;
+the insertion particle ``n - 1`` closes the last interval. With randomisation off ``u = 0``,
+i.e. the particles are the interval end points ``k h``. The paper randomises because fibres of
+about equal length would otherwise put their particles in clusters across the muscle, with gaps
+between them that the sphere-based collision detection (§3.3) sees as holes.
 
 Randomness comes from ``numpy.random.default_rng(seed)``; the same fibres, ``n`` and seed give
 the same particles.

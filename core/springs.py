@@ -30,11 +30,15 @@ def unique_springs(i, j) -> np.ndarray:
     self pairs."""
     i = np.asarray(i, dtype=np.int64).ravel()
     j = np.asarray(j, dtype=np.int64).ravel()
-    pairs = np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1)
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    if len(pairs) == 0:
+    low, high = np.minimum(i, j), np.maximum(i, j)
+    keep = low != high
+    low, high = low[keep], high[keep]
+    if len(low) == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    return np.unique(pairs, axis=0)
+    # one int64 key per pair: a 1-D unique is several times faster than unique(axis=0)
+    width = int(high.max()) + 1
+    key = np.unique(low * width + high)
+    return np.stack([key // width, key % width], axis=1)
 
 
 def rest_lengths(points, springs) -> np.ndarray:

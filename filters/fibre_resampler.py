@@ -27,7 +27,8 @@ from .properties import Property
 
 
 def muscle_seed(seed: int, name: str) -> list:
-    """The ``numpy.random.default_rng`` seed of one muscle: the user's seed and the name's CRC-32."""
+    """The ``numpy.random.default_rng`` seed of one muscle: the user's seed and the CRC-32 of
+    the muscle's name."""
     return [int(seed), zlib.crc32(name.encode("utf-8"))]
 
 

@@ -101,9 +101,10 @@ def cross_overlaps(model):
         radii.append(V.point_array(block, A.RADIUS))
         owner.append(np.full(len(radii[-1]), m))
     centres, radii, owner = map(np.concatenate, (centres, radii, owner))
+    spheres = radii > 0
+    centres, radii, owner = centres[spheres], radii[spheres], owner[spheres]
     d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-    clash = (owner[:, None] != owner[None]) & (radii[:, None] > 0) & (radii[None] > 0) \
-        & (d < radii[:, None] + radii[None])
+    clash = (owner[:, None] != owner[None]) & (d < radii[:, None] + radii[None])
     return int(clash.sum() // 2)
 
 
