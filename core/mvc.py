@@ -35,6 +35,12 @@ DEFAULT_TOLERANCE = 1e-12
 """Tolerance of the degenerate cases: distances in units of the cage's bounding-box diagonal,
 barycentric coordinates and triple products of unit directions as they are."""
 
+# Where a point lies w.r.t. a triangle: its projection on the plane inside the triangle (off
+# the plane or on the triangle), or beside the triangle (projection outside it).
+_OFF_PLANE = 0
+_ON_TRIANGLE = 1
+_BESIDE = 2
+
 
 @numba.njit(cache=True)
 def _unit_to(p, x):
@@ -98,12 +104,12 @@ def _point_weights(cage_points, cage_triangles, x, eps_distance, eps_unitless, r
         det = u0x * c0x + u0y * c0y + u0z * c0z
         if sin0 == 0.0 or sin1 == 0.0 or sin2 == 0.0 or det == 0.0:
             continue
-        if place == _NEAR_PLANE_OUTSIDE and abs(det) <= eps_unitless:
-            # x next to the triangle's plane, outside it: the spherical triangle has (almost)
-            # no area, and its mean vector below would be all rounding error.
+        if place == _BESIDE and abs(det) <= eps_unitless:
+            # x beside the triangle and (almost) in its plane: the spherical triangle has
+            # (almost) no area, and its mean vector below would be all rounding error.
             continue
-        # Mean vector (the integral of the unit direction over the spherical triangle):
-        # sum_k theta_k / 2 * c_k / |c_k|, with theta_k the arc opposite vertex k.
+        # Mean vector (the integral of the unit direction over the spherical triangle, its
+        # sign that of det): sum_k theta_k / 2 * c_k / |c_k|, theta_k the arc opposite k.
         a0 = 0.5 * _arc(u1x, u1y, u1z, u2x, u2y, u2z) / sin0
         a1 = 0.5 * _arc(u2x, u2y, u2z, u0x, u0y, u0z) / sin1
         a2 = 0.5 * _arc(u0x, u0y, u0z, u1x, u1y, u1z) / sin2
@@ -122,15 +128,11 @@ def _point_weights(cage_points, cage_triangles, x, eps_distance, eps_unitless, r
         row[j] /= total
 
 
-_OFF_PLANE = 0
-_ON_TRIANGLE = 1
-_NEAR_PLANE_OUTSIDE = 2
-
-
 @numba.njit(cache=True)
 def _place_on_plane(p0, p1, p2, x, eps_distance, eps_unitless, row, i0, i1, i2):
     """Where ``x`` lies w.r.t. triangle (p0, p1, p2): on it (edges included: then its
-    barycentric weights are put in ``row``), next to its plane outside it, or elsewhere.
+    barycentric weights are put in ``row``), beside it (its projection on the plane falls
+    outside the triangle), or off the plane over the triangle.
 
     Decided by distances, not by the spherical angles of the paper's pseudocode: the half
     perimeter of the spherical triangle approaches pi only quadratically in the distance to
@@ -153,7 +155,7 @@ def _place_on_plane(p0, p1, p2, x, eps_distance, eps_unitless, row, i0, i1, i2):
     b1 = _sub_area(p2, p0, x, nx, ny, nz) / nn
     b2 = _sub_area(p0, p1, x, nx, ny, nz) / nn
     if b0 < -eps_unitless or b1 < -eps_unitless or b2 < -eps_unitless:
-        return _NEAR_PLANE_OUTSIDE
+        return _BESIDE
     height = (nx * (x[0] - p0[0]) + ny * (x[1] - p0[1]) + nz * (x[2] - p0[2])) / math.sqrt(nn)
     if abs(height) > eps_distance:
         return _OFF_PLANE

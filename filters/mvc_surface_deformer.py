@@ -5,6 +5,10 @@ particles, and the mean value coordinates (:mod:`muscle_mss.core.mvc`) of every 
 vertex are computed once. They are kept while the rest inputs (RestSurfaces, RestModel) are
 unchanged: a new time point changes only SolvedModel, and each deformed vertex is then one
 weighted sum of the current cage positions.
+
+Memory: the weights are dense float64, 8 x (surface vertices) x (cage vertices) bytes per
+muscle. The full demo at N = 80 (1282 surface vertices, 2312 cage vertices per muscle) keeps
+23.7 MB per muscle, 308 MB for its 13 muscles.
 """
 from __future__ import annotations
 
