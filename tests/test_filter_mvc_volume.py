@@ -7,6 +7,7 @@ from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as SDDP
 from vtkmodules.vtkFiltersCore import vtkMassProperties
 
+from muscle_mss.core.cage import LATTICE
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.filters import MVCSurfaceDeformer, VolumeErrorProbe
 from muscle_mss.filters import array_names as A
@@ -310,3 +311,36 @@ def test_an_open_rest_surface_is_refused_by_the_probe():
     rest = V.make_multiblock([("vastus", open_surface)])
     with pytest.raises(MuscleMSSError, match="RestSurfaces block 'vastus' is open"):
         probe(V.make_multiblock([("vastus", vastus)]), rest)
+
+
+# ---- with the real upstream filters ----------------------------------------------------------
+
+def test_the_spring_builders_rest_model_gives_back_the_rest_surfaces():
+    from muscle_mss.core.demo_scene import demo_scene
+    from muscle_mss.filters import FibreResampler, SpringBuilder
+    from muscle_mss.filters.scene_io import scene_to_vtk
+
+    muscles, fibres, _, _ = scene_to_vtk(demo_scene("small"))
+    resampler = FibreResampler()
+    resampler.SetInputDataObject(0, fibres)
+    resampler.SetParticlesPerFibre(8)
+    builder = SpringBuilder()
+    builder.SetInputConnection(0, resampler.GetOutputPort())
+    builder.SetInputDataObject(1, muscles)
+    deformer = MVCSurfaceDeformer()
+    deformer.SetInputConnection(0, builder.GetOutputPort())
+    deformer.SetInputDataObject(1, muscles)
+    deformer.SetInputConnection(2, builder.GetOutputPort())
+    volume_probe = VolumeErrorProbe()
+    volume_probe.SetInputConnection(0, deformer.GetOutputPort(0))
+    volume_probe.SetInputDataObject(1, muscles)
+    volume_probe.Update()
+    rest = dict(V.blocks(muscles))
+    for name, out in V.blocks(deformer.GetOutputDataObject(0)):
+        np.testing.assert_allclose(V.points_of(out), V.points_of(rest[name]), rtol=0, atol=1e-8)
+    bindings = deformer.bindings(muscles, builder.GetOutputDataObject(0))
+    assert [b.cage.kind for b in bindings.values()] == [LATTICE] * len(rest)
+    table = V.table_columns(volume_probe.GetOutputDataObject(1))
+    assert table[A.MUSCLE][:-1] == list(rest)
+    np.testing.assert_allclose(table[A.VOLUME_ERROR_PCT], 0.0, atol=1e-9)
+    assert deformer.weight_computations == 1
