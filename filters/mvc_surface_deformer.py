@@ -165,11 +165,18 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
         raise MuscleMSSError(f"{where}: rest_position has NaN or infinite values")
     cage = muscle_cage(rest_positions, boundary, fibre_id, fibre_index, fibre_grid, where)
     surface_where = f"RestSurfaces block '{name}'"
+    if not surface.IsA("vtkPolyData"):
+        raise MuscleMSSError(f"{surface_where}: is a {surface.GetClassName()}; a muscle surface "
+                             "must be a triangle vtkPolyData")
     rest_points = V.points_of(surface)
     triangles = V.triangles_of(surface, surface_where)
     if len(rest_points) == 0 or len(triangles) == 0:
         raise MuscleMSSError(f"{surface_where}: has no triangles; a muscle surface must be a "
                              "closed triangle mesh")
+    if not np.isfinite(rest_points).all():
+        bad = int(np.flatnonzero(~np.isfinite(rest_points).all(axis=1))[0])
+        raise MuscleMSSError(f"{surface_where}: point {bad} has a NaN or infinite coordinate; "
+                             "every coordinate must be finite")
     weights = mean_value_coordinates(rest_positions[cage.vertices], cage.triangles, rest_points,
                                      where=f"{where}: cage")
     order, offsets, fibre_ids = fibre_polylines(fibre_id, fibre_index, where)

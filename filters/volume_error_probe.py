@@ -82,13 +82,17 @@ class VolumeErrorProbe(MuscleFilter):
 def _volumes(name, deformed, rest):
     """``(rest volume, deformed volume)`` in mm^3 of one muscle, its surfaces checked."""
     rest_where = f"RestSurfaces block '{name}'"
+    where = f"DeformedSurfaces block '{name}'"
+    for block, block_where in ((rest, rest_where), (deformed, where)):
+        if not block.IsA("vtkPolyData"):
+            raise MuscleMSSError(f"{block_where}: is a {block.GetClassName()}; a muscle surface "
+                                 "must be a triangle vtkPolyData")
     rest_points = V.points_of(rest)
     rest_triangles = V.triangles_of(rest, rest_where)
     problems = surface_problems(rest_points, rest_triangles)
     if problems:
         raise MuscleMSSError(f"{rest_where} {problems[0]}; a volume needs a closed, "
                              "outward-oriented surface")
-    where = f"DeformedSurfaces block '{name}'"
     points = V.points_of(deformed)
     triangles = V.triangles_of(deformed, where)
     if not np.isfinite(points).all():

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
-from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet
+from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet, vtkUnstructuredGrid
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as SDDP
 from vtkmodules.vtkFiltersCore import vtkMassProperties
 
@@ -289,6 +289,24 @@ def test_a_muscle_without_boundary_particles_is_named():
     with pytest.raises(MuscleMSSError,
                        match="RestModel block 'gracilis': has no boundary particles"):
         deform(moved(model, lambda p: p), surfaces, model)
+
+
+def test_a_rest_surface_with_nan_or_of_another_type_is_named():
+    model, surfaces = scene()
+    vastus = dict(V.blocks(surfaces))["vastus"]
+    points = V.points_of(vastus)
+    points[7, 1] = np.nan
+    nan_surfaces = V.make_multiblock([("vastus", V.with_points(vastus, points)),
+                                      V.blocks(surfaces)[1]])
+    with pytest.raises(MuscleMSSError, match="RestSurfaces block 'vastus': point 7 has a NaN"):
+        deform(moved(model, lambda p: p), nan_surfaces, model)
+    grid_surfaces = V.make_multiblock([("vastus", vtkUnstructuredGrid()), V.blocks(surfaces)[1]])
+    with pytest.raises(MuscleMSSError, match="RestSurfaces block 'vastus': is a "
+                                             "vtkUnstructuredGrid"):
+        deform(moved(model, lambda p: p), grid_surfaces, model)
+    with pytest.raises(MuscleMSSError, match="DeformedSurfaces block 'vastus': is a "
+                                             "vtkUnstructuredGrid"):
+        probe(grid_surfaces, surfaces)
 
 
 def test_a_solved_model_from_another_rest_model_is_refused():
