@@ -494,37 +494,125 @@ def _point_triangle_distance(px, py, pz, tri):
     return math.sqrt(best)
 
 
-@numba.njit(cache=True, parallel=True)
-def _surface_distances(points, corners, centres, radii, offsets, out):
-    """Distance of each point to each bone's triangles ``offsets[b]:offsets[b + 1]``.
+@numba.njit(cache=True)
+def _distance_to_ball(px, py, pz, centres, radii, k):
+    """|p - centre_k| - radius_k: a lower bound of the distance to anything inside the ball."""
+    cx = px - centres[k, 0]
+    cy = py - centres[k, 1]
+    cz = pz - centres[k, 2]
+    return math.sqrt(cx * cx + cy * cy + cz * cz) - radii[k]
 
-    A triangle lies in the ball (``centres``, ``radii``) around its centroid, so
-    ``|p - centre| - radius`` bounds its distance from below and ``|p - centre| + radius`` from
-    above: the first pass finds an upper bound of the bone's distance, the second measures only
-    the triangles that can beat it.
+
+@numba.njit(cache=True)
+def _distance_to_box(px, py, pz, lower, upper, g):
+    """Distance to the axis-aligned box ``lower[g]``..``upper[g]`` (0 inside): a lower bound
+    of the distance to anything inside it."""
+    dx = max(lower[g, 0] - px, 0.0, px - upper[g, 0])
+    dy = max(lower[g, 1] - py, 0.0, py - upper[g, 1])
+    dz = max(lower[g, 2] - pz, 0.0, pz - upper[g, 2])
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@numba.njit(cache=True)
+def _nearest_box(px, py, pz, lower, upper, first, stop):
+    """Index in ``first:stop`` of the box nearest to p."""
+    nearest = first
+    nearest_bound = np.inf
+    for g in range(first, stop):
+        bound = _distance_to_box(px, py, pz, lower, upper, g)
+        if bound < nearest_bound:
+            nearest_bound = bound
+            nearest = g
+    return nearest
+
+
+@numba.njit(cache=True)
+def _cell_distance(px, py, pz, corners, tri_centres, tri_radii, cell_starts, c, best):
+    """min(best, distance to the triangles of cell c), measuring only triangles whose ball
+    is nearer than the best so far."""
+    for k in range(cell_starts[c], cell_starts[c + 1]):
+        if _distance_to_ball(px, py, pz, tri_centres, tri_radii, k) < best:
+            best = min(best, _point_triangle_distance(px, py, pz, corners[k]))
+    return best
+
+
+@numba.njit(cache=True, parallel=True)
+def _surface_distances(points, corners, tri_centres, tri_radii, cell_starts, cell_lower,
+                       cell_upper, block_starts, block_lower, block_upper, bone_blocks, out):
+    """Distance of each point to each bone's triangles.
+
+    Three levels, each a contiguous range of the next: bones (``bone_blocks``, B + 1) hold
+    blocks, blocks (``block_starts``) hold cells, cells (``cell_starts``) hold triangles. Each
+    block and cell lies in a box, each triangle in a ball (centre, radius); the distance to a
+    box or ball bounds the distance to its content from below. The cell nearest by that bound
+    in the nearest block gives a first exact distance; after it only blocks, cells and
+    triangles whose bound beats the best so far are looked into.
     """
     for i in prange(points.shape[0]):
         px = points[i, 0]
         py = points[i, 1]
         pz = points[i, 2]
-        for b in range(offsets.shape[0] - 1):
-            best = np.inf
-            for k in range(offsets[b], offsets[b + 1]):
-                cx = px - centres[k, 0]
-                cy = py - centres[k, 1]
-                cz = pz - centres[k, 2]
-                best = min(best, math.sqrt(cx * cx + cy * cy + cz * cz) + radii[k])
-            for k in range(offsets[b], offsets[b + 1]):
-                cx = px - centres[k, 0]
-                cy = py - centres[k, 1]
-                cz = pz - centres[k, 2]
-                if math.sqrt(cx * cx + cy * cy + cz * cz) - radii[k] < best:
-                    best = min(best, _point_triangle_distance(px, py, pz, corners[k]))
+        for b in range(bone_blocks.shape[0] - 1):
+            seed_block = _nearest_box(px, py, pz, block_lower, block_upper, bone_blocks[b],
+                                      bone_blocks[b + 1])
+            seed = _nearest_box(px, py, pz, cell_lower, cell_upper, block_starts[seed_block],
+                                block_starts[seed_block + 1])
+            best = _cell_distance(px, py, pz, corners, tri_centres, tri_radii, cell_starts,
+                                  seed, np.inf)
+            for blk in range(bone_blocks[b], bone_blocks[b + 1]):
+                if _distance_to_box(px, py, pz, block_lower, block_upper, blk) >= best:
+                    continue
+                for c in range(block_starts[blk], block_starts[blk + 1]):
+                    if c != seed and _distance_to_box(px, py, pz, cell_lower, cell_upper,
+                                                      c) < best:
+                        best = _cell_distance(px, py, pz, corners, tri_centres, tri_radii,
+                                              cell_starts, c, best)
             out[i, b] = best
+
+
+TRIANGLES_PER_CELL = 32
+"""Aimed-for number of triangles in one cell of the distance search."""
+CELLS_PER_BLOCK_SIDE = 4
+"""A block of the distance search is a cube of this many cells a side (~16 cells of surface)."""
+
+
+def _starts(keys):
+    """Where runs of equal sorted ``keys`` start, plus the end: (runs + 1,) int64."""
+    return np.concatenate([[0], np.flatnonzero(np.diff(keys)) + 1, [len(keys)]]).astype(np.int64)
+
+
+def _cells_and_blocks(corners):
+    """The triangles (m, 3, 3) of one bone sorted by block, then by cell, of a cubic grid with
+    about :data:`TRIANGLES_PER_CELL` triangles a cell.
+
+    Returns ``(sorted corners, cell_starts (C + 1,) into triangles, block_starts (K + 1,) into
+    cells)``.
+    """
+    centroids = corners.mean(axis=1)
+    lower = centroids.min(axis=0)
+    # A surface crosses a cube of side s in about 2 (s / edge)^2 triangles; at most 1024
+    # cells a side keep the keys small whatever the triangle sizes.
+    edge = float(np.median(np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)))
+    side = max(edge * math.sqrt(TRIANGLES_PER_CELL / 2.0),
+               float((centroids.max(axis=0) - lower).max()) / 1024.0, 1e-9)
+    cells = ((centroids - lower) / side).astype(np.int64)
+    blocks = cells // CELLS_PER_BLOCK_SIDE
+
+    def key(ijk):
+        shape = ijk.max(axis=0) + 1
+        return (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
+
+    cell_key, block_key = key(cells), key(blocks)
+    order = np.lexsort((cell_key, block_key))
+    cell_starts = _starts(cell_key[order])
+    block_starts = _starts(block_key[order][cell_starts[:-1]])
+    return corners[order], cell_starts, block_starts
 
 
 def bone_distances(points, bones, labels=None) -> np.ndarray:
     """Distance from each point to each bone surface (nearest point on any of its triangles).
+
+    Exact (no sampling): every triangle that could be nearer than the best found is measured.
 
     Parameters
     ----------
@@ -539,7 +627,7 @@ def bone_distances(points, bones, labels=None) -> np.ndarray:
     p = _check_points(points)
     if len(bones) == 0:
         raise MuscleMSSError("there are no bones; the pose needs at least one bone surface")
-    corners = []
+    corners, cell_starts, block_starts, bone_blocks = [], [[0]], [[0]], [0]
     for b, (vertices, triangles) in enumerate(bones):
         label = labels[b] if labels is not None else f"bone {b}"
         v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
@@ -552,14 +640,26 @@ def bone_distances(points, bones, labels=None) -> np.ndarray:
         if bad.any():
             raise MuscleMSSError(f"{label}: point {int(np.flatnonzero(bad)[0])} has a NaN or "
                                  "infinite coordinate; every coordinate must be finite")
-        corners.append(v[t])
-    offsets = np.zeros(len(corners) + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum([len(c) for c in corners])
+        sorted_corners, cells, blocks = _cells_and_blocks(v[t])
+        # Shift this bone's ranges behind the previous bones' triangles and cells.
+        cell_starts.append(cells[1:] + cell_starts[-1][-1])
+        block_starts.append(blocks[1:] + block_starts[-1][-1])
+        bone_blocks.append(bone_blocks[-1] + len(blocks) - 1)
+        corners.append(sorted_corners)
     corners = np.ascontiguousarray(np.concatenate(corners))
-    centres = corners.mean(axis=1)
-    radii = np.linalg.norm(corners - centres[:, None, :], axis=2).max(axis=1)
+    cell_starts = np.concatenate(cell_starts).astype(np.int64)
+    block_starts = np.concatenate(block_starts).astype(np.int64)
+    tri_centres = corners.mean(axis=1)
+    tri_radii = np.linalg.norm(corners - tri_centres[:, None, :], axis=2).max(axis=1)
+    flat = corners.reshape(-1, 3)
+    cell_lower = np.minimum.reduceat(flat, 3 * cell_starts[:-1], axis=0)
+    cell_upper = np.maximum.reduceat(flat, 3 * cell_starts[:-1], axis=0)
+    block_lower = np.minimum.reduceat(cell_lower, block_starts[:-1], axis=0)
+    block_upper = np.maximum.reduceat(cell_upper, block_starts[:-1], axis=0)
     out = np.empty((len(p), len(bones)))
-    _surface_distances(p, corners, np.ascontiguousarray(centres), radii, offsets, out)
+    _surface_distances(p, corners, tri_centres, tri_radii, cell_starts, cell_lower, cell_upper,
+                       block_starts, block_lower, block_upper,
+                       np.asarray(bone_blocks, dtype=np.int64), out)
     return out
 
 

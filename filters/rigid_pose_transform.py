@@ -15,47 +15,15 @@ from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import motion_from_rows
 from muscle_mss.core.pose import BLENDINGS, DUAL_QUATERNION, blend, bone_weights, pose_at, \
     transform_rigid
-from muscle_mss.core.scene import BONES_FILE, MOTION_COLUMNS, MOTION_FILE
+from muscle_mss.core.scene import BONES_FILE
 
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import SDDP, MuscleFilter, Port
 from .properties import Property
+from .scene_io import motion_rows_from_table
 
-MODEL_PORT, BONES_PORT, MOTION_PORT, SURFACES_PORT = range(4)
-
-
-def _numbers(values, column: str) -> np.ndarray:
-    """A motion column as float64; text cells (a reader without numeric detection) are parsed."""
-    if isinstance(values, np.ndarray):
-        return values.astype(np.float64).reshape(-1)
-    out = np.empty(len(values))
-    for r, text in enumerate(values):
-        try:
-            out[r] = float(text)
-        except ValueError:
-            raise MuscleMSSError(f"{MOTION_FILE} row {r + 1}: {column} is '{text}', which is not "
-                                 "a number") from None
-    return out
-
-
-def motion_rows_of_table(table):
-    """``(times (R,), bones [R names], values (R, 12))`` of a motion vtkTable (DESIGN §4 columns).
-
-    Numeric columns may arrive as int, float, double or text; the bone column as text, a variant
-    or (for numeric names) a number column.
-    """
-    columns = {name.strip(): values for name, values in V.table_columns(table).items()}
-    for name in MOTION_COLUMNS:
-        if name not in columns:
-            raise MuscleMSSError(f"{MOTION_FILE}: column '{name}' is missing; the header must be "
-                                 f"{','.join(MOTION_COLUMNS)}")
-    bone_column = columns["bone"]
-    bones = [str(b) for b in (bone_column.tolist() if isinstance(bone_column, np.ndarray)
-                              else bone_column)]
-    times = _numbers(columns["time"], "time")
-    values = np.column_stack([_numbers(columns[name], name) for name in MOTION_COLUMNS[2:]])
-    return times, bones, values.reshape(len(times), 12)
+MOTION_PORT = 2  # index of the Motion input in INPUTS
 
 
 def _finite(rest, where: str) -> np.ndarray:
@@ -147,9 +115,9 @@ class RigidPoseTransform(MuscleFilter):
         try:
             producer.Update(conn.GetIndex())
             table = producer.GetOutputDataObject(conn.GetIndex())
-            if table is None or table.GetColumnByName("time") is None:
+            if table is None:
                 return []
-            times = _numbers(V.table_columns(table)["time"], "time")
+            times = motion_rows_from_table(table)[0]
         except MuscleMSSError:
             return []
         return np.unique(times[np.isfinite(times)]).tolist()
@@ -168,7 +136,7 @@ class RigidPoseTransform(MuscleFilter):
     def _read_motion(self, table, bone_names):
         key = (table.GetAddressAsString("vtkObjectBase"), table.GetMTime(), tuple(bone_names))
         if key != self._motion_key:
-            times, bones, values = motion_rows_of_table(table)
+            times, bones, values = motion_rows_from_table(table)
             self._motion = motion_from_rows(times, bones, values, known_bones=bone_names)
             self._motion_key = key
         return self._motion

@@ -363,11 +363,11 @@ def test_bad_inputs_are_refused_naming_the_block(messages):
     with pytest.raises(MuscleMSSError, match="BonesPerPoint is 0"):
         f.Update()
     f = pose_filter(V.make_table({"time": np.zeros(1), "bone": ["femur"]}))
-    with pytest.raises(MuscleMSSError, match="column 'm00' is missing"):
+    with pytest.raises(MuscleMSSError, match="m00, m01.* missing"):
         f.Update()
 
 
-def test_text_columns_are_parsed_and_bad_text_names_the_row(messages):
+def test_text_columns_are_parsed_and_bad_text_is_refused(messages):
     rows = motion_rows()
     columns = {"time": [repr(t) for t, _, _ in rows], "bone": [b for _, b, _ in rows]}
     for k, name in enumerate(MOTION_COLUMNS[2:]):
@@ -380,7 +380,7 @@ def test_text_columns_are_parsed_and_bad_text_names_the_row(messages):
                                block_points(make_bones(), "tibia") @ knee(90)[:, :3].T, atol=1e-12)
     columns["m12"][2] = "abc"
     f = pose_filter(V.make_table(columns))
-    with pytest.raises(MuscleMSSError, match="motion.csv row 3: m12 is 'abc'"):
+    with pytest.raises(MuscleMSSError, match="motion.csv: .* not a number"):
         f.Update()
 
 

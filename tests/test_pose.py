@@ -255,6 +255,39 @@ def test_distances_to_cubes_are_exact_inside_and_outside():
     np.testing.assert_allclose(d[:, 1], box_distance(points, 7.0, (0, 0, 25)), atol=1e-12)
 
 
+def subdivided_cube(half, n):
+    """The surface of the cube [-half, half]^3, each face an n x n grid of squares split in two."""
+    u = np.linspace(-half, half, n + 1)
+    a, b = (g.ravel() for g in np.meshgrid(u, u, indexing="ij"))
+    quad = np.array([[i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1,
+                      i * (n + 1) + j + 1] for i in range(n) for j in range(n)])
+    vertices, triangles = [], []
+    for axis in range(3):
+        for side in (-half, half):
+            face = np.empty((len(a), 3))
+            face[:, axis] = side
+            face[:, (axis + 1) % 3] = a
+            face[:, (axis + 2) % 3] = b
+            offset = sum(len(v) for v in vertices)
+            vertices.append(face)
+            triangles.append(quad[:, [0, 1, 2]] + offset)
+            triangles.append(quad[:, [0, 2, 3]] + offset)
+    return np.concatenate(vertices), np.concatenate(triangles)
+
+
+def test_distances_to_finely_meshed_cubes_are_exact_near_and_far():
+    # 4800 and 1200 triangles: many cells and blocks of the search, all pruned by bounds.
+    rng = np.random.default_rng(7)
+    near = rng.uniform(-30, 30, size=(1500, 3))
+    far = rng.normal(size=(200, 3))
+    far = far / np.linalg.norm(far, axis=1, keepdims=True) * rng.uniform(100, 400, size=(200, 1))
+    points = np.concatenate([near, far])
+    big, small = subdivided_cube(20.0, 20), subdivided_cube(5.0, 10)
+    d = bone_distances(points, [big, (small[0] + [0, 0, 40], small[1])])
+    np.testing.assert_allclose(d[:, 0], box_distance(points, 20.0, (0, 0, 0)), atol=1e-10)
+    np.testing.assert_allclose(d[:, 1], box_distance(points, 5.0, (0, 0, 40)), atol=1e-10)
+
+
 def test_distances_match_the_unpruned_reference_on_a_triangle_soup():
     rng = np.random.default_rng(6)
     vertices = rng.normal(scale=20.0, size=(90, 3))
