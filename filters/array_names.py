@@ -12,7 +12,7 @@ FIBRE_GRID = "fibre_grid"            # int32 x2, (row, col) of the fibre in the 
 FIXED = "fixed"                      # uint8, 1 for the two end particles of each fibre
 BOUNDARY = "boundary"                # uint8, 1 for particles in collisions and in the MVC cage
 RADIUS = "radius"                    # float64, collision sphere radius, mm (0 if not boundary)
-MASS = "mass"                        # float64, particle mass, kg
+MASS = "mass"                        # float64, particle mass, g
 BONE_WEIGHTS = "bone_weights"        # float64 x B, blend weight of each bone (pose filter)
 VELOCITY = "velocity"                # float64 x3, mm/s (solver)
 DISPLACEMENT = "displacement"        # float64 x3, solved minus posed position, mm (solver)
@@ -20,8 +20,8 @@ COLLIDED = "collided"                # uint8, collided in the last iteration (so
 
 # Cell data of the spring cells (two-point lines) of a muscle block.
 REST_LENGTH = "rest_length"          # float64, mm
-STIFFNESS = "stiffness"              # float64, N/mm
-DAMPING = "damping"                  # float64, N s/mm
+STIFFNESS = "stiffness"              # float64, g/s^2 (force per mm of stretch; model units mm, s, g)
+DAMPING = "damping"                  # float64, g/s (along the spring)
 
 # Cell data of the deformed fibre polylines (MVC Surface Deformer).
 FIBRE_LENGTH = "fibre_length"        # float64, mm

@@ -124,6 +124,12 @@ class MuscleFilter(VTKPythonAlgorithmBase):
         None for an unconnected optional port). Raise :class:`MuscleMSSError` on bad input."""
         raise TypeError(f"{type(self).__name__} does not define execute()")
 
+    def SetInputData(self, *args):
+        """``SetInputData(data)`` or ``SetInputData(port, data)``: connect a data object (as
+        VTK's typed algorithms do; VTKPythonAlgorithmBase only has SetInputDataObject)."""
+        port, data = (0, args[0]) if len(args) == 1 else args
+        self.SetInputDataObject(port, data)
+
     def Update(self, *args):
         """Update the pipeline; raise the :class:`MuscleMSSError` of the first filter upstream
         (or this one) that refused its input."""
