@@ -15,7 +15,11 @@ all precision next to a triangle's plane) keeps full precision down to distances
 the cage size. The degenerate cases of the robust form:
 
 * a point on a cage vertex (within ``tolerance`` times the cage's size) gets weight 1 there;
-* a point on a triangle, its edges included, gets that triangle's barycentric weights;
+* a point on a triangle, its edges included, gets that triangle's barycentric weights; "on"
+  is decided by the distance to the plane and the barycentric coordinates of the projection,
+  not by the pseudocode's test ``pi - h < eps``: h approaches pi only quadratically in the
+  distance, so that test would snap points far off the triangle (3e-5 of its size for
+  eps = 1e-9) onto it;
 * a triangle whose plane passes through the point, the point outside it, contributes nothing
   (its spherical triangle has no area);
 
@@ -35,22 +39,6 @@ DEFAULT_TOLERANCE = 1e-12
 """Tolerance of the degenerate cases: distances in units of the cage's bounding-box diagonal,
 barycentric coordinates and triple products of unit directions as they are."""
 
-# Where a point lies w.r.t. a triangle: its projection on the plane inside the triangle (off
-# the plane or on the triangle), or beside the triangle (projection outside it).
-_OFF_PLANE = 0
-_ON_TRIANGLE = 1
-_BESIDE = 2
-
-
-@numba.njit(cache=True)
-def _unit_to(p, x):
-    dx = p[0] - x[0]
-    dy = p[1] - x[1]
-    dz = p[2] - x[2]
-    d = math.sqrt(dx * dx + dy * dy + dz * dz)
-    return dx / d, dy / d, dz / d, d
-
-
 @numba.njit(cache=True)
 def _arc(ax, ay, az, bx, by, bz):
     # 2 asin(|a - b| / 2) keeps full precision for nearly equal and nearly opposite directions,
@@ -63,30 +51,35 @@ def _arc(ax, ay, az, bx, by, bz):
 
 
 @numba.njit(cache=True)
-def _point_weights(cage_points, cage_triangles, x, eps_distance, eps_unitless, row):
-    """Fill ``row`` (m,) with the normalised weights of point ``x`` (3,)."""
+def _point_weights(cage_points, cage_triangles, normals, x, eps_distance, eps_unitless, unit,
+                   distance, row):
+    """Fill ``row`` (m,) with the normalised weights of point ``x`` (3,).
+
+    ``normals`` (t, 3): (p1 - p0) x (p2 - p0) of each triangle; ``unit`` (m, 3) and
+    ``distance`` (m,): scratch for the directions and distances from x to the cage vertices.
+    """
     m = cage_points.shape[0]
-    eps_d2 = eps_distance * eps_distance
     for j in range(m):
         row[j] = 0.0
     for j in range(m):
         dx = cage_points[j, 0] - x[0]
         dy = cage_points[j, 1] - x[1]
         dz = cage_points[j, 2] - x[2]
-        if dx * dx + dy * dy + dz * dz <= eps_d2:
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if d <= eps_distance:
             row[j] = 1.0
             return
+        unit[j, 0] = dx / d
+        unit[j, 1] = dy / d
+        unit[j, 2] = dz / d
+        distance[j] = d
     for t in range(cage_triangles.shape[0]):
         i0 = cage_triangles[t, 0]
         i1 = cage_triangles[t, 1]
         i2 = cage_triangles[t, 2]
-        place = _place_on_plane(cage_points[i0], cage_points[i1], cage_points[i2], x,
-                                eps_distance, eps_unitless, row, i0, i1, i2)
-        if place == _ON_TRIANGLE:
-            return
-        u0x, u0y, u0z, d0 = _unit_to(cage_points[i0], x)
-        u1x, u1y, u1z, d1 = _unit_to(cage_points[i1], x)
-        u2x, u2y, u2z, d2 = _unit_to(cage_points[i2], x)
+        u0x, u0y, u0z, d0 = unit[i0, 0], unit[i0, 1], unit[i0, 2], distance[i0]
+        u1x, u1y, u1z, d1 = unit[i1, 0], unit[i1, 1], unit[i1, 2], distance[i1]
+        u2x, u2y, u2z, d2 = unit[i2, 0], unit[i2, 1], unit[i2, 2], distance[i2]
         # c_k = u_{k+1} x u_{k+2}: normal of the spherical triangle's side opposite vertex k,
         # of length sin(theta_k).
         c0x = u1y * u2z - u1z * u2y
@@ -98,13 +91,36 @@ def _point_weights(cage_points, cage_triangles, x, eps_distance, eps_unitless, r
         c2x = u0y * u1z - u0z * u1y
         c2y = u0z * u1x - u0x * u1z
         c2z = u0x * u1y - u0y * u1x
+        det = u0x * c0x + u0y * c0y + u0z * c0z
+        nx, ny, nz = normals[t, 0], normals[t, 1], normals[t, 2]
+        nn = nx * nx + ny * ny + nz * nz
+        beside = False
+        if nn > 0.0:
+            # Signed barycentric coordinates of x's projection on the plane: the areas of the
+            # sub-triangles (x, p_{k+1}, p_{k+2}) = d_{k+1} d_{k+2} c_k / 2 over the area.
+            b0 = d1 * d2 * (c0x * nx + c0y * ny + c0z * nz) / nn
+            b1 = d2 * d0 * (c1x * nx + c1y * ny + c1z * nz) / nn
+            b2 = d0 * d1 * (c2x * nx + c2y * ny + c2z * nz) / nn
+            beside = b0 < -eps_unitless or b1 < -eps_unitless or b2 < -eps_unitless
+            height = d0 * (u0x * nx + u0y * ny + u0z * nz) / math.sqrt(nn)
+            if not beside and abs(height) <= eps_distance:
+                # x lies on the triangle, edges included: its barycentric weights.
+                b0 = max(b0, 0.0)
+                b1 = max(b1, 0.0)
+                b2 = max(b2, 0.0)
+                total = b0 + b1 + b2
+                for j in range(m):
+                    row[j] = 0.0
+                row[i0] += b0 / total
+                row[i1] += b1 / total
+                row[i2] += b2 / total
+                return
         sin0 = math.sqrt(c0x * c0x + c0y * c0y + c0z * c0z)
         sin1 = math.sqrt(c1x * c1x + c1y * c1y + c1z * c1z)
         sin2 = math.sqrt(c2x * c2x + c2y * c2y + c2z * c2z)
-        det = u0x * c0x + u0y * c0y + u0z * c0z
         if sin0 == 0.0 or sin1 == 0.0 or sin2 == 0.0 or det == 0.0:
             continue
-        if place == _BESIDE and abs(det) <= eps_unitless:
+        if beside and abs(det) <= eps_unitless:
             # x beside the triangle and (almost) in its plane: the spherical triangle has
             # (almost) no area, and its mean vector below would be all rounding error.
             continue
@@ -128,67 +144,18 @@ def _point_weights(cage_points, cage_triangles, x, eps_distance, eps_unitless, r
         row[j] /= total
 
 
-@numba.njit(cache=True)
-def _place_on_plane(p0, p1, p2, x, eps_distance, eps_unitless, row, i0, i1, i2):
-    """Where ``x`` lies w.r.t. triangle (p0, p1, p2): on it (edges included: then its
-    barycentric weights are put in ``row``), beside it (its projection on the plane falls
-    outside the triangle), or off the plane over the triangle.
-
-    Decided by distances, not by the spherical angles of the paper's pseudocode: the half
-    perimeter of the spherical triangle approaches pi only quadratically in the distance to
-    the plane, so an angle tolerance would snap points far off the triangle onto it.
-    """
-    ex = p1[0] - p0[0]
-    ey = p1[1] - p0[1]
-    ez = p1[2] - p0[2]
-    fx = p2[0] - p0[0]
-    fy = p2[1] - p0[1]
-    fz = p2[2] - p0[2]
-    nx = ey * fz - ez * fy
-    ny = ez * fx - ex * fz
-    nz = ex * fy - ey * fx
-    nn = nx * nx + ny * ny + nz * nz
-    if nn == 0.0:
-        return _OFF_PLANE
-    # Signed barycentric coordinates of x's projection: sub-triangle areas over the area.
-    b0 = _sub_area(p1, p2, x, nx, ny, nz) / nn
-    b1 = _sub_area(p2, p0, x, nx, ny, nz) / nn
-    b2 = _sub_area(p0, p1, x, nx, ny, nz) / nn
-    if b0 < -eps_unitless or b1 < -eps_unitless or b2 < -eps_unitless:
-        return _BESIDE
-    height = (nx * (x[0] - p0[0]) + ny * (x[1] - p0[1]) + nz * (x[2] - p0[2])) / math.sqrt(nn)
-    if abs(height) > eps_distance:
-        return _OFF_PLANE
-    b0 = max(b0, 0.0)
-    b1 = max(b1, 0.0)
-    b2 = max(b2, 0.0)
-    total = b0 + b1 + b2
-    for j in range(row.shape[0]):
-        row[j] = 0.0
-    row[i0] += b0 / total
-    row[i1] += b1 / total
-    row[i2] += b2 / total
-    return _ON_TRIANGLE
-
-
-@numba.njit(cache=True)
-def _sub_area(a, b, x, nx, ny, nz):
-    # ((a - x) x (b - x)) . n: twice the signed area of (x, a, b) times |n|.
-    ax = a[0] - x[0]
-    ay = a[1] - x[1]
-    az = a[2] - x[2]
-    bx = b[0] - x[0]
-    by = b[1] - x[1]
-    bz = b[2] - x[2]
-    return (ay * bz - az * by) * nx + (az * bx - ax * bz) * ny + (ax * by - ay * bx) * nz
-
-
 @numba.njit(parallel=True, cache=True)
-def _mean_value_coordinates(cage_points, cage_triangles, points, eps_distance, eps_unitless,
-                            weights):
-    for q in prange(points.shape[0]):
-        _point_weights(cage_points, cage_triangles, points[q], eps_distance, eps_unitless,
-                       weights[q])
+def _mean_value_coordinates(cage_points, cage_triangles, normals, points, eps_distance,
+                            eps_unitless, chunks, weights):
+    n = points.shape[0]
+    m = cage_points.shape[0]
+    for c in prange(chunks):
+        # One scratch per chunk of points, not per point.
+        unit = np.empty((m, 3))
+        distance = np.empty(m)
+        for q in range(c * n // chunks, (c + 1) * n // chunks):
+            _point_weights(cage_points, cage_triangles, normals, points[q], eps_distance,
+                           eps_unitless, unit, distance, weights[q])
 
 
 def mean_value_coordinates(cage_points, cage_triangles, points, tolerance=DEFAULT_TOLERANCE,
@@ -243,8 +210,11 @@ def mean_value_coordinates(cage_points, cage_triangles, points, tolerance=DEFAUL
     points = points - centre
     weights = np.empty((len(points), len(cage_points)), dtype=np.float64)
     if len(points):
-        _mean_value_coordinates(cage_points, cage_triangles, points, tolerance * size,
-                                tolerance, weights)
+        a, b, c = (cage_points[cage_triangles[:, k]] for k in range(3))
+        normals = np.cross(b - a, c - a)
+        chunks = min(len(points), 8 * numba.get_num_threads())
+        _mean_value_coordinates(cage_points, cage_triangles, normals, points, tolerance * size,
+                                tolerance, chunks, weights)
     if not np.isfinite(weights).all():
         bad = int(np.flatnonzero(~np.isfinite(weights).all(axis=1))[0])
         raise MuscleMSSError(f"{where}: the weights of point {bad} are not finite; the cage "
