@@ -157,7 +157,8 @@ def rotation_to_quaternion(rotations) -> np.ndarray:
 
 
 def quaternion_to_rotation(quaternions) -> np.ndarray:
-    """Rotation matrices of unit quaternions ``(w, x, y, z)``: (4,) → (3, 3), (k, 4) → (k, 3, 3)."""
+    """Rotation matrices of unit quaternions ``(w, x, y, z)``:
+    (4,) → (3, 3), (k, 4) → (k, 3, 3)."""
     q = np.asarray(quaternions, dtype=np.float64)
     flat = np.ascontiguousarray(q.reshape(-1, 4))
     out = np.empty((len(flat), 3, 3))
@@ -238,13 +239,13 @@ def pose_at(motion: Motion, time: float):
 
 # ---- blending ------------------------------------------------------------------------------
 
-def _check_points(points, name="points") -> np.ndarray:
+def _check_points(points) -> np.ndarray:
     p = np.ascontiguousarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
-        raise MuscleMSSError(f"{name} must be an (n, 3) array, not {p.shape}")
+        raise MuscleMSSError(f"points must be an (n, 3) array, not {p.shape}")
     bad = ~np.isfinite(p).all(axis=1)
     if bad.any():
-        raise MuscleMSSError(f"{name}: point {int(np.flatnonzero(bad)[0])} has a NaN or infinite "
+        raise MuscleMSSError(f"point {int(np.flatnonzero(bad)[0])} has a NaN or infinite "
                              "coordinate; every coordinate must be finite")
     return p
 

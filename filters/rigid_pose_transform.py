@@ -34,6 +34,16 @@ def _finite(rest, where: str) -> np.ndarray:
     return rest
 
 
+def _polydata_blocks(multiblock, source: str) -> list:
+    """The named leaves of an input multiblock, each checked to be a vtkPolyData."""
+    items = V.blocks(multiblock, where=source)
+    for name, block in items:
+        if not block.IsA("vtkPolyData"):
+            raise MuscleMSSError(f"{source} block '{name}': is a {block.GetClassName()}; it must "
+                                 "be a vtkPolyData")
+    return items
+
+
 def _tree_stamp(data):
     """What identifies one version of an input: the object and the newest MTime in its tree."""
     if data is None:
@@ -72,7 +82,8 @@ class RigidPoseTransform(MuscleFilter):
     )
     OUTPUTS = (
         Port("PosedModel", "vtkMultiBlockDataSet",
-             "The model with posed particle positions; every input array kept, bone_weights added."),
+             "The model with posed particle positions; every input array kept, "
+             "bone_weights added."),
         Port("PosedBones", "vtkMultiBlockDataSet", "The bones at the current time."),
         Port("PosedSurfaces", "vtkMultiBlockDataSet",
              "The muscle surfaces carried rigidly by their bones (empty without Surfaces)."),
@@ -182,13 +193,13 @@ class RigidPoseTransform(MuscleFilter):
     # ---- execution ----------------------------------------------------------------------------
     def execute(self, inputs, outputs):
         model, bones, table, surfaces = inputs
-        bone_items = V.blocks(bones, where=BONES_FILE)
+        bone_items = _polydata_blocks(bones, BONES_FILE)
         if not bone_items:
             raise MuscleMSSError(f"{BONES_FILE}: has no blocks; the pose needs at least one bone")
         bone_names = [name for name, _ in bone_items]
         motion = self._read_motion(table, bone_names)
-        model_items = V.blocks(model, where="Model")
-        surface_items = V.blocks(surfaces, where="Surfaces") if surfaces is not None else []
+        model_items = _polydata_blocks(model, "Model")
+        surface_items = _polydata_blocks(surfaces, "Surfaces") if surfaces is not None else []
 
         time = self.requested_time(default=float(motion.times[0]))
         matrices, used = pose_at(motion, time)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
+from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkUnstructuredGrid
 from vtkmodules.vtkIOInfovis import vtkDelimitedTextReader
 from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataReader, vtkXMLMultiBlockDataWriter
 
@@ -146,7 +147,7 @@ def test_time_steps_come_from_the_csv_and_the_time_moves_the_bones(tmp_path):
         assert np.array_equal(block_points(bones, "femur"), block_points(make_bones(), "femur"))
         for port in range(3):
             assert f.GetOutputDataObject(port).GetInformation().Get(
-                module.vtkDataObject.DATA_TIME_STEP()) == t
+                vtkDataObject.DATA_TIME_STEP()) == t
     f.UpdateTimeStep(0.25)
     np.testing.assert_allclose(block_points(f.GetOutputDataObject(1), "tibia"),
                                rest_tibia @ knee(22.5)[:, :3].T, atol=1e-12)
@@ -359,6 +360,10 @@ def test_bad_inputs_are_refused_naming_the_block(messages):
     f.SetInputDataObject(1, flat)
     with pytest.raises(MuscleMSSError, match="bones.vtm block 'femur': has no triangles"):
         f.Update()
+    f = pose_filter(table(motion_rows()))
+    f.SetInputDataObject(3, V.make_multiblock([("rectus", vtkUnstructuredGrid())]))
+    with pytest.raises(MuscleMSSError, match="Surfaces block 'rectus': is a vtkUnstructuredGrid"):
+        f.Update()
     f = pose_filter(table(motion_rows()), BonesPerPoint=0)
     with pytest.raises(MuscleMSSError, match="BonesPerPoint is 0"):
         f.Update()
@@ -391,4 +396,4 @@ def test_default_time_is_the_first_row_and_properties_have_their_defaults():
     np.testing.assert_allclose(block_points(f.GetOutputDataObject(1), "tibia"),
                                block_points(make_bones(), "tibia") @ knee(30)[:, :3].T, atol=1e-12)
     assert math.isfinite(f.GetOutputDataObject(0).GetInformation().Get(
-        module.vtkDataObject.DATA_TIME_STEP()))
+        vtkDataObject.DATA_TIME_STEP()))

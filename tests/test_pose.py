@@ -292,8 +292,9 @@ def test_distances_match_the_unpruned_reference_on_a_triangle_soup():
     rng = np.random.default_rng(6)
     vertices = rng.normal(scale=20.0, size=(90, 3))
     triangles = rng.integers(0, 90, size=(60, 3))
-    triangles = triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
-                          & (triangles[:, 0] != triangles[:, 2])]
+    distinct = ((triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                & (triangles[:, 0] != triangles[:, 2]))
+    triangles = triangles[distinct]
     points = rng.normal(scale=30.0, size=(150, 3))
     d = bone_distances(points, [(vertices, triangles)])
     np.testing.assert_allclose(d[:, 0], naive_distances(points, vertices, triangles), atol=1e-10)
