@@ -154,8 +154,9 @@ class RigidPoseTransform(MuscleFilter):
 
     # ---- rest pose: positions and weights, once per rest input --------------------------------
     def _rest_pose(self, model, bones, surfaces, model_items, bone_items, surface_items):
-        """Rest positions and blend weights of the model blocks and surface blocks, and the
-        bones' rest vertices; recomputed only when an input or a weight property changes."""
+        """Rest positions (N, 3) and blend weights (N, B) of the model's and the surfaces' points,
+        every block's ``(start, stop)`` in them, and the bones' rest vertices; recomputed only
+        when an input or a weight property changes."""
         key = (_tree_stamp(model), _tree_stamp(bones), _tree_stamp(surfaces),
                self.value("BonesPerPoint"), self.value("FallOff"))
         if key == self._rest_key:
@@ -176,16 +177,19 @@ class RigidPoseTransform(MuscleFilter):
         surface_rest = [_finite(V.points_of(block), f"Surfaces block '{name}'")
                         for name, block in surface_items]
         every = model_rest + surface_rest
+        points = np.concatenate(every) if every else np.zeros((0, 3))
         self.progress(0.1)
-        # One call over all points: the kernel parallelises over points, not over blocks.
-        weights = bone_weights(np.concatenate(every) if every else np.zeros((0, 3)),
-                               bone_surfaces, self.value("BonesPerPoint"),
-                               self.value("FallOff"), labels)
-        split = np.split(weights, np.cumsum([len(r) for r in every])[:-1]) if every else []
+        ends = np.cumsum([len(r) for r in every], dtype=np.int64)
+        ranges = list(zip(np.concatenate([[0], ends[:-1]]), ends))
+        # All blocks in one array: one parallel kernel launch for the weights and, per time,
+        # for the blend (a launch per block costs more than the blend of a block).
         self._rest = {
             "bones": [v for v, _ in bone_surfaces],
-            "model": list(zip(model_rest, split[:len(model_rest)])),
-            "surfaces": list(zip(surface_rest, split[len(model_rest):])),
+            "points": points,
+            "weights": bone_weights(points, bone_surfaces, self.value("BonesPerPoint"),
+                                    self.value("FallOff"), labels),
+            "model": ranges[:len(model_rest)],
+            "surfaces": ranges[len(model_rest):],
         }
         self._rest_key = key
         return self._rest
@@ -210,13 +214,13 @@ class RigidPoseTransform(MuscleFilter):
 
         rest = self._rest_pose(model, bones, surfaces, model_items, bone_items, surface_items)
         self.progress(0.6)
-        blending = self.choice("Blending")
+        posed_points = blend(rest["points"], rest["weights"], matrices, self.choice("Blending"))
 
-        def posed(items, rest_and_weights):
+        def posed(items, ranges):
             out = []
-            for (name, block), (points, weights) in zip(items, rest_and_weights):
-                moved = V.with_points(block, blend(points, weights, matrices, blending))
-                V.set_point_array(moved, A.BONE_WEIGHTS, weights)
+            for (name, block), (start, stop) in zip(items, ranges):
+                moved = V.with_points(block, posed_points[start:stop])
+                V.set_point_array(moved, A.BONE_WEIGHTS, rest["weights"][start:stop])
                 V.set_field(moved, A.BONE_NAMES, bone_names)
                 out.append((name, moved))
             return out
