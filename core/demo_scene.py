@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline, PchipInterpolator
+from scipy.ndimage import map_coordinates
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -76,13 +77,13 @@ class _Size:
     bone_spacing: float   # marching-tetrahedra grid step (mm)
     grid: int             # fibres per side of the fibre_grid
     fibre_vertices: int   # vertices per fibre polyline
-    rings: int            # muscle surface rings between origin and insertion
+    refine: int           # muscle surface rings per interval between fibre vertices
     ring_vertices: int    # vertices per muscle surface ring
 
 
 _SIZES = {
-    "full": _Size(bone_spacing=3.0, grid=8, fibre_vertices=30, rings=36, ring_vertices=32),
-    "small": _Size(bone_spacing=6.0, grid=4, fibre_vertices=12, rings=14, ring_vertices=16),
+    "full": _Size(bone_spacing=3.0, grid=8, fibre_vertices=30, refine=1, ring_vertices=32),
+    "small": _Size(bone_spacing=6.0, grid=4, fibre_vertices=12, refine=2, ring_vertices=16),
 }
 
 
@@ -206,13 +207,16 @@ def _pelvis(p):
     crest = [_round_cone(p, rim[i], rim[i + 1], 6.5, 6.5) for i in range(len(rim) - 1)]
     ilium = _round_cone(p, _v(-4.0, -6.0, 18.0), _v(-10.0, -18.0, 58.0), 19.0, 14.0)
     spines = [_sphere(p, ASIS, 8.0), _sphere(p, AIIS, 7.0)]
+    # The anterior border of the ilium: ASIS down to AIIS and on to the acetabular rim.
+    anterior_border = [_round_cone(p, ASIS, AIIS, 7.0, 7.0),
+                       _round_cone(p, AIIS, _v(8.0, 18.0, 14.0), 7.0, 12.0)]
     superior_ramus = _round_cone(p, _v(-14.0, 24.0, -6.0), PUBIC_BODY + _v(6.0, 0.0, 6.0), 10.0, 8.5)
     pubis = _ellipsoid(p, PUBIC_BODY + _v(-6.0, -2.0, -4.0), _v(10.0, 12.0, 24.0))
     inferior_ramus = _round_cone(p, PUBIC_BODY + _v(-2.0, -8.0, -22.0),
                                  ISCHIAL_TUBEROSITY + _v(-8.0, 6.0, -2.0), 7.5, 8.5)
     ischium = _round_cone(p, _v(-10.0, -24.0, -18.0), ISCHIAL_TUBEROSITY, 13.0, 12.0)
     tuberosity = _ellipsoid(p, ISCHIAL_TUBEROSITY, _v(12.0, 14.0, 18.0))
-    solid = _blend(5.0, body, wing, *crest, ilium, *spines, superior_ramus, pubis,
+    solid = _blend(5.0, body, wing, *crest, ilium, *spines, *anterior_border, superior_ramus, pubis,
                    inferior_ramus, ischium, tuberosity)
     # The acetabulum: a socket 2 mm wider than the femoral head (cartilage space).
     return np.maximum(solid, -_sphere(p, HIP_CENTRE, 24.0))
@@ -327,6 +331,42 @@ _TETRAHEDRA = _freudenthal_tetrahedra()
 _CASES = _tetrahedron_cases()
 
 
+@dataclass(frozen=True)
+class SampledField:
+    """An implicit function and its values on a regular grid.
+
+    ``values`` (nx, ny, nz) float64 at the nodes ``lower + spacing * (i, j, k)`` (mm).
+    """
+
+    field: object
+    lower: np.ndarray
+    spacing: float
+    values: np.ndarray
+
+    @classmethod
+    def sample(cls, field, lower, upper, spacing) -> "SampledField":
+        lower = np.asarray(lower, dtype=np.float64)
+        shape = np.ceil((np.asarray(upper) - lower) / spacing).astype(np.int64) + 1
+        values = field(cls._nodes(lower, spacing, shape)).reshape(shape)
+        # A zero at a node would let several crossing edges share one vertex (a non-manifold pinch).
+        values[values == 0.0] = 1e-12
+        return cls(field, lower, float(spacing), values)
+
+    @staticmethod
+    def _nodes(lower, spacing, shape):
+        axes = [lower[d] + spacing * np.arange(shape[d]) for d in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def nodes(self):
+        return self._nodes(self.lower, self.spacing, self.values.shape)
+
+    def interpolate(self, points):
+        """Trilinear interpolation of the grid values at ``points`` (n, 3) mm; outside the grid
+        the nearest boundary value (positive: outside the solid)."""
+        coords = ((np.asarray(points) - self.lower) / self.spacing).T
+        return map_coordinates(self.values, coords, order=1, mode="nearest")
+
+
 def mesh_implicit(field, lower, upper, spacing) -> Surface:
     """Closed, manifold, outward triangle surface of ``{x : field(x) < 0}`` by marching tetrahedra.
 
@@ -339,13 +379,14 @@ def mesh_implicit(field, lower, upper, spacing) -> Surface:
     Only the largest connected piece is kept. Vertices lie on the grid edges where the field
     changes sign, placed on its zero by regula falsi.
     """
-    lower = np.asarray(lower, dtype=np.float64)
-    shape = np.ceil((np.asarray(upper) - lower) / spacing).astype(np.int64) + 1
-    axes = [lower[d] + spacing * np.arange(shape[d]) for d in range(3)]
-    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    values = field(nodes)
-    # A zero at a node would let several crossing edges share one vertex (a non-manifold pinch).
-    values[values == 0.0] = 1e-12
+    return mesh_sampled(SampledField.sample(field, lower, upper, spacing))
+
+
+def mesh_sampled(sampled: SampledField) -> Surface:
+    """:func:`mesh_implicit` of an already sampled field."""
+    field, shape = sampled.field, np.array(sampled.values.shape)
+    nodes = sampled.nodes()
+    values = sampled.values.reshape(-1)
     inside = values < 0.0
 
     strides = np.array([shape[1] * shape[2], shape[2], 1])
@@ -408,10 +449,15 @@ def _largest_piece(points, triangles) -> Surface:
     return Surface(points[keep].copy(), new_index[kept].astype(np.int64))
 
 
+def sampled_bone(name: str, spacing: float = 3.0) -> SampledField:
+    """A demo bone's implicit function sampled on a grid of step ``spacing`` (mm)."""
+    lower, upper = _BONE_BOXES[name]
+    return SampledField.sample(_BONE_FIELDS[name], lower, upper, spacing)
+
+
 def bone_surface(name: str, spacing: float = 3.0) -> Surface:
     """The closed surface of a demo bone meshed with grid step ``spacing`` (mm)."""
-    lower, upper = _BONE_BOXES[name]
-    return mesh_implicit(_BONE_FIELDS[name], lower, upper, spacing)
+    return mesh_sampled(sampled_bone(name, spacing))
 
 
 # ---- muscles -------------------------------------------------------------------------------
@@ -506,7 +552,7 @@ _MUSCLES = {
 
 _TENDON = 2.5        # semi-axis of the muscle's cross-section at origin and insertion (mm)
 _CAP = 3.0           # length of the rounded end cap beyond origin and insertion (mm)
-_FIBRE_DEPTH = 0.9   # the outer ring of fibres lies at this fraction of the way to the surface
+_FIBRE_DEPTH = 0.92  # the outer ring of fibres lies at this fraction of the way to the surface
 _OVERLAP = 0.03      # neighbours overlap by this fraction of their semi-axes along a shared face
 _BONE_CONTACT = 0.3  # muscles press this far (mm) into the bones they lie against
 _ATTACHMENT_DEPTH = 5.0  # ...and up to this far (mm) at their attachments
@@ -528,7 +574,10 @@ class _Envelope:
         self._z = np.linspace(self.z_bottom, self.z_top, int(np.ceil((self.z_top - self.z_bottom) / 0.25)) + 1)
         xy = PchipInterpolator(knots[::-1, 2], knots[::-1, :2], extrapolate=True)(self._z)
         radial = xy - _thigh_axis(self._z)[:, :2]
-        self._table = np.column_stack([xy, radial / np.linalg.norm(radial, axis=1)[:, None]])
+        a, b = self._profile(self._z)
+        self._table = np.column_stack([xy, radial / np.linalg.norm(radial, axis=1)[:, None], a, b])
+        reach = np.maximum(a, b)
+        self._box = (np.min(xy - reach[:, None], axis=0), np.max(xy + reach[:, None], axis=0))
 
     def _lookup(self, z, column):
         return np.interp(z, self._z, self._table[:, column])
@@ -543,7 +592,9 @@ class _Envelope:
 
     def semi_axes(self, z):
         """(radial, tangential) semi-axes (mm) at heights z; 0 outside the muscle."""
-        z = np.asarray(z, dtype=np.float64)
+        return self._lookup(z, 4), self._lookup(z, 5)
+
+    def _profile(self, z):
         u = (self.z_origin - z) / self.length
         inner = np.clip(u, 0.0, 1.0) ** (np.log(0.5) / np.log(self.spec.peak))
         bell = np.sin(np.pi * inner) ** self.spec.fullness
@@ -557,7 +608,9 @@ class _Envelope:
         """Normalised elliptic distance of ``points`` (n, 3) from the centreline in their own
         horizontal slice: 1 on the envelope; inf above or below the muscle."""
         z = points[:, 2]
-        within = (z < self.z_top) & (z > self.z_bottom)
+        within = ((z < self.z_top) & (z > self.z_bottom)
+                  & (points[:, :2] > self._box[0]).all(axis=1)
+                  & (points[:, :2] < self._box[1]).all(axis=1))
         out = np.full(len(points), np.inf)
         if within.any():
             zw = z[within]
@@ -570,9 +623,9 @@ class _Envelope:
         return out
 
 
-def _muscle_field(name, envelopes, spec):
+def _muscle_field(name, envelopes, spec, bones):
     """Implicit function of one muscle: inside its envelope, on its side of every neighbour,
-    outside the bones except near its attachments."""
+    outside the ``bones`` (name -> :class:`SampledField`) except near its attachments."""
     own = envelopes[name]
     others = [e for n, e in envelopes.items() if n != name]
     attachments = {}
@@ -585,24 +638,22 @@ def _muscle_field(name, envelopes, spec):
         f = mine - 1.0
         if others:
             nearest_other = np.min([e.elliptic_distance(points) for e in others], axis=0)
-            f = np.maximum(f, mine - nearest_other - _OVERLAP)
-        for bone in BONE_NAMES:
-            lower, upper = _BONE_BOXES[bone]
-            near = (points >= lower - 5.0).all(axis=1) & (points <= upper + 5.0).all(axis=1)
-            if not near.any():
-                continue
-            allowed = np.full(near.sum(), _BONE_CONTACT)
+            # Above or below this muscle (mine = inf) f is inf already; avoid inf - inf.
+            split = np.where(np.isfinite(mine), mine - np.minimum(nearest_other, 1e9), np.inf)
+            f = np.maximum(f, split - _OVERLAP)
+        for bone, sampled in bones.items():
+            allowed = np.full(len(points), _BONE_CONTACT)
             for a in attachments.get(bone, ()):
-                closeness = np.clip(1.0 - np.linalg.norm(points[near] - a, axis=1) / _ATTACHMENT_REACH,
+                closeness = np.clip(1.0 - np.linalg.norm(points - a, axis=1) / _ATTACHMENT_REACH,
                                     0.0, 1.0)
                 allowed = np.maximum(allowed, _ATTACHMENT_DEPTH * closeness)
-            f[near] = np.maximum(f[near], -bone_field(bone, points[near]) - allowed)
+            f = np.maximum(f, -sampled.interpolate(points) - allowed)
         return f
 
     return field
 
 
-def _cast(field, origins, directions, reach, samples=24, halvings=14):
+def _cast(field, origins, directions, reach, samples=16, halvings=13):
     """Distance (mm) along each ray from ``origins`` (r, 3) in unit ``directions`` (r, 3) to the
     first point where ``field`` >= 0; ``reach`` (r,) must lie beyond that point."""
     steps = reach[:, None] * (np.arange(1, samples + 1) / samples)[None, :]
@@ -665,13 +716,14 @@ def _square_to_disc(sx, sy):
     return sx * np.sqrt(1.0 - sy ** 2 / 2.0), sy * np.sqrt(1.0 - sx ** 2 / 2.0)
 
 
-def _muscle(name, envelopes, size):
+def _muscle(name, envelopes, bones, size):
     spec = _MUSCLES[name]
     envelope = envelopes[name]
-    field = _muscle_field(name, envelopes, spec)
+    field = _muscle_field(name, envelopes, spec, bones)
 
-    # Surface: rings in horizontal slices, denser towards the ends where the belly tapers.
-    u = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, size.rings))
+    # Surface: rings in horizontal slices through every fibre vertex: the surface's cross-section
+    # there is exactly the ring polygon, which holds the fibre vertices of that slice.
+    u = np.linspace(0.0, 1.0, size.refine * (size.fibre_vertices - 1) + 1)
     cap_u = np.array([0.45, 0.8]) * _CAP / envelope.length
     u = np.concatenate([-cap_u[::-1], u, 1.0 + cap_u])
     z = envelope.z_origin - u * envelope.length
@@ -740,9 +792,10 @@ def demo_scene(size: str = "full") -> Scene:
     sizes = _SIZES[size]
     names = MUSCLE_NAMES if size == "full" else SMALL_MUSCLE_NAMES
     scene = Scene(motion=gait_motion())
-    for bone in BONE_NAMES:
-        scene.bones[bone] = bone_surface(bone, sizes.bone_spacing)
+    bones = {bone: sampled_bone(bone, sizes.bone_spacing) for bone in BONE_NAMES}
+    for bone, sampled in bones.items():
+        scene.bones[bone] = mesh_sampled(sampled)
     envelopes = _envelopes(names)
     for name in names:
-        scene.muscles[name], scene.fibres[name] = _muscle(name, envelopes, sizes)
+        scene.muscles[name], scene.fibres[name] = _muscle(name, envelopes, bones, sizes)
     return scene
