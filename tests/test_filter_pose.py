@@ -15,11 +15,13 @@ from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataReader, vtkXMLMultiBlockData
 
 import muscle_mss.filters.rigid_pose_transform as module
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.pose import pose_at
 from muscle_mss.core.scene import MOTION_COLUMNS
-from muscle_mss.filters import RigidPoseTransform
+from muscle_mss.filters import FibreResampler, RigidPoseTransform, SpringBuilder
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.base import SDDP
+from muscle_mss.filters.scene_io import scene_readers
 
 CUBE_CORNERS = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
                          [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=np.float64)
@@ -397,3 +399,33 @@ def test_default_time_is_the_first_row_and_properties_have_their_defaults():
                                block_points(make_bones(), "tibia") @ knee(30)[:, :3].T, atol=1e-12)
     assert math.isfinite(f.GetOutputDataObject(0).GetInformation().Get(
         vtkDataObject.DATA_TIME_STEP()))
+
+
+def test_small_demo_scene_through_the_real_upstream_filters(small_scene, small_scene_dir):
+    muscles, fibres, bones, motion = scene_readers(str(small_scene_dir))
+    resampler = FibreResampler()
+    resampler.SetInputConnection(0, fibres.GetOutputPort())
+    springs = SpringBuilder()
+    springs.SetInputConnection(0, resampler.GetOutputPort())
+    springs.SetInputConnection(1, muscles.GetOutputPort())
+    f = RigidPoseTransform()
+    for port, source in enumerate((springs, bones, motion, muscles)):
+        f.SetInputConnection(port, source.GetOutputPort())
+    f.UpdateInformation()
+    np.testing.assert_allclose(f.GetOutputInformation(0).Get(SDDP.TIME_STEPS()),
+                               small_scene.motion.times, rtol=0, atol=1e-12)
+    t = 0.5 * (small_scene.motion.times[3] + small_scene.motion.times[4])
+    f.UpdateTimeStep(t)
+    matrices, _ = pose_at(small_scene.motion, t)
+    for b, (name, posed) in enumerate(V.blocks(f.GetOutputDataObject(1))):
+        rest = small_scene.bones[name].points
+        np.testing.assert_allclose(V.points_of(posed), rest @ matrices[b, :, :3].T
+                                   + matrices[b, :, 3], atol=1e-9)
+    model = V.blocks(f.GetOutputDataObject(0))
+    assert [n for n, _ in model] == list(small_scene.muscles)
+    for name, block in model:
+        weights = V.point_array(block, A.BONE_WEIGHTS)
+        assert weights.shape == (block.GetNumberOfPoints(), len(small_scene.bones))
+        np.testing.assert_allclose(weights.sum(axis=1), 1.0, atol=1e-12)
+        assert np.isfinite(V.points_of(block)).all()
+        assert not np.array_equal(V.points_of(block), V.point_array(block, A.REST_POSITION))
