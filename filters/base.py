@@ -133,7 +133,13 @@ class MuscleFilter(VTKPythonAlgorithmBase):
     def Update(self, *args):
         """Update the pipeline; raise the :class:`MuscleMSSError` of the first filter upstream
         (or this one) that refused its input."""
-        result = super().Update(*args)
+        return self._raising(super().Update(*args))
+
+    def UpdateTimeStep(self, *args):
+        """Update at a time (``UpdateTimeStep(t)``); raise like :meth:`Update`."""
+        return self._raising(super().UpdateTimeStep(*args))
+
+    def _raising(self, result):
         error = pipeline_error(self)
         if error is not None:
             raise error
