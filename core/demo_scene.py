@@ -82,8 +82,8 @@ class _Size:
 
 
 _SIZES = {
-    "full": _Size(bone_spacing=3.0, grid=8, fibre_vertices=30, refine=1, ring_vertices=32),
-    "small": _Size(bone_spacing=6.0, grid=4, fibre_vertices=12, refine=2, ring_vertices=16),
+    "full": _Size(bone_spacing=4.0, grid=8, fibre_vertices=30, refine=1, ring_vertices=32),
+    "small": _Size(bone_spacing=7.0, grid=4, fibre_vertices=12, refine=2, ring_vertices=16),
 }
 
 

@@ -97,8 +97,10 @@ def scene_preview(scene, path, time=None, window_size=(1600, 1100)) -> str:
             if fibres is not None and fibres.count:
                 plotter.add_mesh(_polylines(pyvista, posed_points(scene, fibres.points, matrices),
                                             fibres.offsets), color="black", line_width=1)
-        plotter.camera_position = [(900.0, 700.0, 50.0), (10.0, 0.0, -330.0), (0.0, 0.0, 1.0)]
-        plotter.camera.zoom(1.15)
+        # Antero-lateral view: hip and knee flexion are seen nearly side on.
+        plotter.view_vector((1.0, 0.8, 0.2), viewup=(0.0, 0.0, 1.0))
+        plotter.reset_camera()
+        plotter.camera.zoom(1.2)
     plotter.screenshot(str(path))
     plotter.close()
     return str(path)

@@ -70,10 +70,17 @@ def _inside(surface, points):
     return vtk_to_numpy(select.GetOutput().GetPointData().GetArray("SelectedPoints")) == 1
 
 
+_DISTANCES = {}
+
+
 def _signed_distance(surface, points):
     """Signed distance (mm) of ``points`` (n, 3) to ``surface``: negative inside."""
-    distance = vtkImplicitPolyDataDistance()
-    distance.SetInput(_polydata(surface.points, surface.triangles))
+    key = id(surface)
+    if key not in _DISTANCES:
+        # Building the locator is the slow part: once per surface (the scenes live all module).
+        _DISTANCES[key] = (surface, vtkImplicitPolyDataDistance())
+        _DISTANCES[key][1].SetInput(_polydata(surface.points, surface.triangles))
+    distance = _DISTANCES[key][1]
     values = vtkDoubleArray()
     distance.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
                                         deep=True), values)
@@ -220,7 +227,12 @@ def test_fibres_run_from_origin_to_insertion_on_the_right_bones(full):
 def test_each_muscle_touches_a_neighbour(full):
     names = list(full.muscles)
     for a in names:
-        gaps = {b: _gap(full.muscles[a], full.muscles[b]) for b in names if b != a}
+        gaps = {}
+        for b in names:
+            if b != a:
+                gaps[b] = _gap(full.muscles[a], full.muscles[b])
+                if gaps[b] < TOUCH_TOLERANCE:
+                    break
         assert min(gaps.values()) < TOUCH_TOLERANCE, (a, gaps)
 
 
@@ -254,8 +266,9 @@ def test_muscles_do_not_swallow_each_other(full):
         lo, hi = np.percentile(z, [20.0, 80.0])
         belly = surface.points[(z > lo) & (z < hi)]
         for b, other in full.muscles.items():
-            if a != b:
-                assert (_signed_distance(other, belly) < -2.0).mean() < 0.05, (a, b)
+            near = belly[((belly > other.points.min(axis=0)) & (belly < other.points.max(axis=0))).all(axis=1)]
+            if a != b and len(near):
+                assert (_signed_distance(other, near) < -2.0).sum() < 0.05 * len(belly), (a, b)
 
 
 # ---- motion --------------------------------------------------------------------------------
