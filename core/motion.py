@@ -105,3 +105,11 @@ def motion_rows(motion: Motion):
     bones = list(motion.bones) * t_count
     values = motion.matrices.reshape(t_count * b_count, 12)
     return times, bones, values
+
+
+def farthest_pose_index(motion: Motion) -> int:
+    """Index of the time point at which the bones are rotated farthest from the rest pose in
+    total (sum of rotation angles): the pose worth showing, mid-swing for a walking cycle."""
+    traces = np.trace(motion.matrices[:, :, :, :3], axis1=2, axis2=3)
+    angles = np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)).sum(axis=1)
+    return int(np.argmax(angles))

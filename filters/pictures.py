@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.motion import farthest_pose_index
 
 MUSCLE_COLOURS = (
     "#d62728", "#ff7f0e", "#bcbd22", "#2ca02c", "#17becf", "#1f77b4", "#9467bd",
@@ -30,9 +31,7 @@ def pose_time(motion, time=None) -> float:
     walking cycle, where the knee is flexed most)."""
     if time is not None:
         return float(time)
-    traces = np.trace(motion.matrices[:, :, :, :3], axis1=2, axis2=3)
-    angles = np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)).sum(axis=1)
-    return float(motion.times[int(np.argmax(angles))])
+    return float(motion.times[farthest_pose_index(motion)])
 
 
 def _matrices_at(motion, time):
@@ -116,3 +115,70 @@ def _polylines(pyvista, points, offsets):
     cells = np.concatenate([np.concatenate([[n], np.arange(o, o + n)])
                             for o, n in zip(offsets[:-1], sizes)])
     return pyvista.PolyData(np.asarray(points, dtype=np.float64), lines=cells)
+
+
+def convergence_picture(convergence_csv, path, title="") -> str:
+    """Plot a solver convergence table (``convergence/convergence_<k>.csv``): mean displacement
+    per iteration of each muscle, log scale (the paper's figures 5 and 6). Returns ``path``."""
+    import csv
+
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib import pyplot
+
+    with open(convergence_csv, newline="") as f:
+        rows = list(csv.DictReader(f))
+    iterations = [int(r["iteration"]) for r in rows]
+    prefix = "mean_displacement_"
+    figure, axes = pyplot.subplots(figsize=(9, 5.5), dpi=120)
+    for m, column in enumerate(c for c in rows[0] if c.startswith(prefix)):
+        axes.plot(iterations, [max(float(r[column]), 1e-12) for r in rows],
+                  color=MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)], lw=1.2,
+                  label=column[len(prefix):].replace("_", " "))
+    axes.set_yscale("log")
+    axes.set_xlabel("iteration")
+    axes.set_ylabel("mean displacement per iteration (mm)")
+    axes.set_title(title or "solver convergence")
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=7, ncol=2)
+    figure.tight_layout()
+    figure.savefig(path)
+    pyplot.close(figure)
+    return str(path)
+
+
+def poses_picture(pipeline, index, path, window_size=(1800, 800)) -> str:
+    """Write a PNG of three panels at time point ``index`` of a
+    :class:`~muscle_mss.filters.motion_run.Pipeline`: the rest pose, the rigid-only pose (the
+    Rigid Pose Transform's surfaces) and the solved pose (the MVC Surface Deformer's surfaces),
+    as the paper's figure 1. Returns ``path``."""
+    import pyvista
+
+    from . import vtk_arrays as V
+    from .motion_run import update_at
+
+    t = pipeline.times[index]
+    rest_bones = pipeline.bones.GetOutputDataObject(0)
+    panels = (("rest pose", pipeline.muscles.GetOutputDataObject(0), rest_bones),
+              (f"rigid only, t = {t:.2f} s", update_at(pipeline.pose, 2, t),
+               update_at(pipeline.pose, 1, t)),
+              (f"solved, t = {t:.2f} s", update_at(pipeline.deformer, 0, t),
+               update_at(pipeline.pose, 1, t)))
+    pyvista.OFF_SCREEN = True
+    plotter = pyvista.Plotter(off_screen=True, shape=(1, 3), window_size=list(window_size),
+                              border=False)
+    for column, (title, muscles, bones) in enumerate(panels):
+        plotter.subplot(0, column)
+        plotter.set_background("#30343c")
+        plotter.add_text(title, font_size=11, color="white")
+        for _, bone in V.blocks(bones, "bones"):
+            plotter.add_mesh(pyvista.wrap(bone), color=BONE_COLOUR, smooth_shading=True)
+        for m, (_, muscle) in enumerate(V.blocks(muscles, "muscles")):
+            plotter.add_mesh(pyvista.wrap(muscle), color=MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)],
+                             smooth_shading=True)
+        plotter.view_vector((1.0, 0.8, 0.2), viewup=(0.0, 0.0, 1.0))
+        plotter.reset_camera()
+    plotter.link_views()
+    plotter.screenshot(str(path))
+    plotter.close()
+    return str(path)
