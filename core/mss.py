@@ -1,0 +1,384 @@
+"""The mass-spring system of the muscles and its collision spheres (the paper's §3.1–3.3).
+
+Particles of every muscle are held in one structure-of-arrays: positions and velocities are
+``(3, n)`` float64 (mm, mm/s), the muscles one after another (``muscle_offsets``). Springs follow
+Hooke's law with damping along the spring: for a spring from particle ``a`` to ``b`` with rest
+length ``L0`` (mm), stiffness ``k`` (g/s^2) and damping ``c`` (g/s), ``d = x_b - x_a``,
+``L = |d|``, the force on ``a`` is ::
+
+    f_a = (k (L - L0) + c (v_b - v_a) . d / L) d / L        and  f_b = -f_a
+
+(force unit g mm/s^2). :func:`mss_steps` advances the system by semi-implicit Euler,
+``v += dt f / m``, ``x += dt v``; fixed particles (tendon attachments) never move.
+
+Speed. Springs are grouped into *runs*: springs of one muscle with the same index offset
+``d = b - a`` and the same stiffness and damping. A run whose springs cover at least half of
+the index range they span is stored densely ("lanes": one rest length per index, -1 where that
+index has no spring), so the force loop reads positions at ``a`` and ``a + d`` contiguously and
+vectorises. A lattice with its particles ordered by (row, col, fibre_index) has 13 such runs per
+muscle (:func:`lattice_order` gives that order). Springs in sparser runs (Delaunay, k-NN) take a
+scalar loop. The muscles are independent tasks of one ``prange``; inside a muscle every sum has
+a fixed order, so results are bitwise reproducible whatever the thread count.
+
+The collision spheres are the boundary particles with a positive radius (:class:`Spheres`).
+The response shared by both collision structures (:func:`sphere_push`, :func:`push_share`,
+:func:`deeper`) is the paper's §3.3 rule — a colliding pair moves apart by its penetration
+along the centre line, half each, or all of it for the free sphere when the other is fixed or a
+bone sphere; pushes are accumulated and applied after all tests — with one refinement: a sphere
+takes one push per *other object*, that of its deepest pair with that object. The paper sums
+every pair; when a muscle sphere overlaps many small spheres of one bone (the demo's posed
+muscles: up to 53 bone spheres of 2 mm under one 7 mm muscle sphere) that sum throws it by
+tens of times its penetration (over 100 mm at N = 80), whereas the deepest pair's push lifts it
+exactly onto the surface of the sphere set. With one pair per object (two muscles in contact:
+1.02 pairs per colliding sphere on the demo) the two rules coincide.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from .errors import MuscleMSSError
+
+# No 'nnan' / 'ninf': the solver's divergence check must still see NaN and infinity.
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+# A run of springs is stored densely when it has at least this many springs and they cover
+# at least DENSE_FILL of the index range they span; otherwise its springs go to the scalar loop.
+DENSE_MIN = 8
+DENSE_FILL = 0.5
+NO_SPRING = -1.0   # rest length of a dense lane without a spring
+
+
+@dataclass
+class SpringLayout:
+    """Springs grouped for the force kernel (see the module docstring).
+
+    ``runs_int`` (R, 4) int64: first particle ``a``, number of lanes, offset ``d``, first lane.
+    ``runs_param`` (R, 2) float64: stiffness (g/s^2) and damping (g/s) of the run.
+    ``lane_rest`` (lanes,) float64: rest length (mm) of lane ``i``'s spring, -1 for no spring.
+    ``scattered_int`` (Q, 2) int64 ends, ``scattered_param`` (Q, 3) rest length, stiffness,
+    damping of the springs in the scalar loop. ``run_ptr``, ``scattered_ptr`` (M+1,) int64: the
+    runs / scattered springs of muscle ``m`` are ``[ptr[m], ptr[m+1])``.
+    """
+
+    runs_int: np.ndarray
+    runs_param: np.ndarray
+    lane_rest: np.ndarray
+    run_ptr: np.ndarray
+    scattered_int: np.ndarray
+    scattered_param: np.ndarray
+    scattered_ptr: np.ndarray
+
+    @property
+    def arrays(self) -> tuple:
+        """The arrays in the order the kernels take them."""
+        return (self.runs_int, self.runs_param, self.lane_rest, self.run_ptr,
+                self.scattered_int, self.scattered_param, self.scattered_ptr)
+
+
+def lattice_order(fibre_id, fibre_index, fibre_grid=None) -> np.ndarray:
+    """(P,) int64: the order of one muscle's particles in which lattice neighbours sit at
+    constant index offsets — by (row, col) of ``fibre_grid`` when given, else by ``fibre_id``,
+    then by ``fibre_index``. Any order is correct; this one makes the spring kernel fast."""
+    fibre_index = np.asarray(fibre_index).ravel()
+    if fibre_grid is not None:
+        grid = np.asarray(fibre_grid).reshape(len(fibre_index), -1)
+        return np.lexsort((fibre_index, np.asarray(fibre_id).ravel(), grid[:, 1], grid[:, 0]))
+    return np.lexsort((fibre_index, np.asarray(fibre_id).ravel()))
+
+
+def spring_layout(springs, rest_length, stiffness, damping, muscle_offsets) -> SpringLayout:
+    """Group the springs for the force kernel.
+
+    Parameters
+    ----------
+    springs : (S, 2) int
+        Particle indices of each spring's ends (global, muscles one after another); a spring
+        never joins two muscles.
+    rest_length, stiffness, damping : (S,) float64
+        mm, g/s^2, g/s.
+    muscle_offsets : (M+1,) int
+        Muscle ``m`` owns particles ``[muscle_offsets[m], muscle_offsets[m+1])``.
+    """
+    springs = np.asarray(springs, dtype=np.int64).reshape(-1, 2)
+    rest_length = np.asarray(rest_length, dtype=np.float64).ravel()
+    stiffness = np.asarray(stiffness, dtype=np.float64).ravel()
+    damping = np.asarray(damping, dtype=np.float64).ravel()
+    offsets = np.asarray(muscle_offsets, dtype=np.int64)
+    a = springs.min(axis=1)
+    b = springs.max(axis=1)
+    d = b - a
+    muscle = np.searchsorted(offsets, a, side="right") - 1
+    order = np.lexsort((a, damping, stiffness, d, muscle))
+    a, d, muscle = a[order], d[order], muscle[order]
+    rest, k, c = rest_length[order], stiffness[order], damping[order]
+    new_group = np.ones(len(a), dtype=bool)
+    new_group[1:] = ((muscle[1:] != muscle[:-1]) | (d[1:] != d[:-1]) | (k[1:] != k[:-1])
+                     | (c[1:] != c[:-1]))
+    starts = np.flatnonzero(new_group)
+    ends = np.append(starts[1:], len(a))
+    span = a[ends - 1] - a[starts] + 1
+    # a repeated spring would need two springs in one lane: its run takes the scalar loop
+    repeated = np.zeros(len(a), dtype=bool)
+    repeated[1:] = (a[1:] == a[:-1]) & ~new_group[1:]
+    has_repeat = np.add.reduceat(repeated, starts) > 0 if len(a) else np.zeros(0, dtype=bool)
+    dense = (((ends - starts) >= DENSE_MIN) & ((ends - starts) >= DENSE_FILL * span)
+             & ~has_repeat)
+
+    lane_first = np.concatenate([[0], np.cumsum(np.where(dense, span, 0))])
+    lane_rest = np.full(int(lane_first[-1]), NO_SPRING)
+    in_dense = np.repeat(dense, ends - starts)
+    group_of = np.repeat(np.arange(len(starts)), ends - starts)
+    lane = lane_first[group_of] + a - a[starts][group_of]
+    lane_rest[lane[in_dense]] = rest[in_dense]
+    runs_int = np.stack([a[starts], span, d[starts], lane_first[:-1]], axis=1)[dense]
+    runs_param = np.stack([k[starts], c[starts]], axis=1)[dense]
+    run_muscle = muscle[starts][dense]
+
+    sparse = ~in_dense
+    scattered_int = np.stack([a[sparse], a[sparse] + d[sparse]], axis=1)
+    scattered_param = np.stack([rest[sparse], k[sparse], c[sparse]], axis=1)
+    n_muscles = len(offsets) - 1
+    return SpringLayout(
+        np.ascontiguousarray(runs_int, dtype=np.int64),
+        np.ascontiguousarray(runs_param, dtype=np.float64),
+        lane_rest,
+        np.searchsorted(run_muscle, np.arange(n_muscles + 1)).astype(np.int64),
+        np.ascontiguousarray(scattered_int, dtype=np.int64).reshape(-1, 2),
+        np.ascontiguousarray(scattered_param, dtype=np.float64).reshape(-1, 3),
+        np.searchsorted(muscle[sparse], np.arange(n_muscles + 1)).astype(np.int64))
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
+def _spring_factor(dx, dy, dz, dvx, dvy, dvz, rest, k, c):
+    """Force on the spring's first end divided by ``d``: (k (L - L0) + c dv.d / L) / L; zero for
+    a spring of zero length, whose direction is undefined."""
+    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+    inv = 1.0 / length if length > 0.0 else 0.0
+    return (k * (length - rest) + c * (dvx * dx + dvy * dy + dvz * dz) * inv) * inv
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _run_forces(x0, x1, x2, v0, v1, v2, t0, t1, t2, first, lanes, d, lane0, lane_rest, k, c):
+    # Unsigned indices: Numba then drops its negative-index wraparound, which blocks SIMD.
+    for i in range(lanes):
+        a = np.uint64(first + i)
+        b = a + np.uint64(d)
+        rest = lane_rest[np.uint64(lane0 + i)]
+        f = _spring_factor(x0[b] - x0[a], x1[b] - x1[a], x2[b] - x2[a],
+                           v0[b] - v0[a], v1[b] - v1[a], v2[b] - v2[a], rest, k, c)
+        f = f if rest >= 0.0 else 0.0
+        t0[a] = f * (x0[b] - x0[a])
+        t1[a] = f * (x1[b] - x1[a])
+        t2[a] = f * (x2[b] - x2[a])
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _run_scatter(f0, f1, f2, t0, t1, t2, first, lanes, d):
+    # Two loops: within one, a write to a + d could meet a later lane's a and block SIMD.
+    for i in range(lanes):
+        a = np.uint64(first + i)
+        f0[a] += t0[a]
+        f1[a] += t1[a]
+        f2[a] += t2[a]
+    for i in range(lanes):
+        a = np.uint64(first + i)
+        b = a + np.uint64(d)
+        f0[b] -= t0[a]
+        f1[b] -= t1[a]
+        f2[b] -= t2[a]
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest,
+                   run_ptr, scattered_int, scattered_param, scattered_ptr):
+    """Spring forces on the particles of muscle ``m`` into ``force`` (3, n)."""
+    for p in range(muscle_offsets[m], muscle_offsets[m + 1]):
+        force[0, p] = 0.0
+        force[1, p] = 0.0
+        force[2, p] = 0.0
+    x0, x1, x2 = x[0], x[1], x[2]
+    v0, v1, v2 = v[0], v[1], v[2]
+    f0, f1, f2 = force[0], force[1], force[2]
+    t0, t1, t2 = scratch[0], scratch[1], scratch[2]
+    for r in range(run_ptr[m], run_ptr[m + 1]):
+        _run_forces(x0, x1, x2, v0, v1, v2, t0, t1, t2, runs_int[r, 0], runs_int[r, 1],
+                    runs_int[r, 2], runs_int[r, 3], lane_rest, runs_param[r, 0], runs_param[r, 1])
+        _run_scatter(f0, f1, f2, t0, t1, t2, runs_int[r, 0], runs_int[r, 1], runs_int[r, 2])
+    for s in range(scattered_ptr[m], scattered_ptr[m + 1]):
+        a = scattered_int[s, 0]
+        b = scattered_int[s, 1]
+        dx = x0[b] - x0[a]
+        dy = x1[b] - x1[a]
+        dz = x2[b] - x2[a]
+        f = _spring_factor(dx, dy, dz, v0[b] - v0[a], v1[b] - v1[a], v2[b] - v2[a],
+                           scattered_param[s, 0], scattered_param[s, 1], scattered_param[s, 2])
+        f0[a] += f * dx
+        f1[a] += f * dy
+        f2[a] += f * dz
+        f0[b] -= f * dx
+        f1[b] -= f * dy
+        f2[b] -= f * dz
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
+def mss_step(x, v, x_prev, force, scratch, inv_mass, dt, muscle_offsets, runs_int, runs_param,
+             lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr):
+    """One semi-implicit Euler step of every muscle, in place.
+
+    x, v (3, n) float64 mm, mm/s; x_prev (3, n) receives x before the step; force, scratch
+    (3, n) work arrays; inv_mass (n,) 1/g, 0 for fixed particles (so they never move);
+    dt s; the rest as :class:`SpringLayout`.
+    """
+    for m in prange(muscle_offsets.shape[0] - 1):
+        _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param,
+                       lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+        for p in range(muscle_offsets[m], muscle_offsets[m + 1]):
+            h = dt * inv_mass[p]
+            for axis in range(3):
+                x_prev[axis, p] = x[axis, p]
+                v[axis, p] += h * force[axis, p]
+                x[axis, p] += dt * v[axis, p]
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
+def _forces_all(x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest, run_ptr,
+                scattered_int, scattered_param, scattered_ptr):
+    for m in prange(muscle_offsets.shape[0] - 1):
+        _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param,
+                       lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+
+
+def _soa(points, n, what):
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) != n:
+        raise MuscleMSSError(f"{what} has {len(points)} rows; expected {n}")
+    return np.ascontiguousarray(points.T)
+
+
+def spring_forces(positions, velocities, layout: SpringLayout, muscle_offsets) -> np.ndarray:
+    """(n, 3) float64: the spring force on every particle (g mm/s^2).
+
+    positions (n, 3) mm, velocities (n, 3) mm/s; ``layout`` from :func:`spring_layout`.
+    """
+    offsets = np.asarray(muscle_offsets, dtype=np.int64)
+    n = int(offsets[-1])
+    x = _soa(positions, n, "positions")
+    v = _soa(velocities, n, "velocities")
+    force = np.zeros_like(x)
+    _forces_all(x, v, force, np.zeros_like(x), offsets, *layout.arrays)
+    return force.T.copy()
+
+
+def mss_steps(positions, velocities, masses, fixed, layout: SpringLayout, muscle_offsets,
+              dt: float, steps: int):
+    """Advance the mass-spring system ``steps`` semi-implicit Euler steps of ``dt`` s without
+    collisions; returns new ``(positions, velocities)`` (n, 3). masses (n,) g, fixed (n,) bool."""
+    offsets = np.asarray(muscle_offsets, dtype=np.int64)
+    n = int(offsets[-1])
+    x = _soa(positions, n, "positions")
+    v = _soa(velocities, n, "velocities")
+    inv_mass = np.where(np.asarray(fixed, dtype=bool), 0.0, 1.0 / np.asarray(masses, float))
+    v[:, inv_mass == 0.0] = 0.0
+    work = np.zeros((3, 3, n))
+    for _ in range(int(steps)):
+        mss_step(x, v, work[0], work[1], work[2], inv_mass, float(dt), offsets, *layout.arrays)
+    return x.T.copy(), v.T.copy()
+
+
+# ---- collision spheres -----------------------------------------------------------------------
+
+@dataclass
+class Spheres:
+    """The collision spheres of a solve (paper §3.3).
+
+    Muscle spheres: ``particle`` (m,) int64 the particle each one sits on, ``radius`` (m,)
+    float64 mm, ``muscle`` (m,) int64, ``fixed`` (m,) bool. Bone spheres: ``bone_centres``
+    (3, b) float64 mm, ``bone_radius`` (b,) mm, ``bone`` (b,) int64. Bones do not move during a
+    solve; muscle sphere centres are the current particle positions.
+    """
+
+    particle: np.ndarray
+    radius: np.ndarray
+    muscle: np.ndarray
+    fixed: np.ndarray
+    bone_centres: np.ndarray
+    bone_radius: np.ndarray
+    bone: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.particle)
+
+    @property
+    def n_muscles(self) -> int:
+        return int(self.muscle.max()) + 1 if len(self.muscle) else 0
+
+    @property
+    def n_bones(self) -> int:
+        return int(self.bone.max()) + 1 if len(self.bone) else 0
+
+
+def make_spheres(radius, muscle, fixed, boundary, bone_centres=None, bone_radius=None,
+                 bone=None) -> Spheres:
+    """The :class:`Spheres` of boundary particles with a positive radius plus the bone spheres.
+
+    radius (n,) mm, muscle (n,) int, fixed (n,) bool, boundary (n,) bool per particle;
+    bone_centres (b, 3) mm, bone_radius (b,) mm, bone (b,) int (omit for no bones).
+    """
+    radius = np.asarray(radius, dtype=np.float64).ravel()
+    particle = np.flatnonzero(np.asarray(boundary, dtype=bool).ravel() & (radius > 0.0))
+    if bone_centres is None:
+        bone_centres, bone_radius, bone = np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
+    return Spheres(particle.astype(np.int64), radius[particle].copy(),
+                   np.asarray(muscle, dtype=np.int64).ravel()[particle].copy(),
+                   np.asarray(fixed, dtype=bool).ravel()[particle].copy(),
+                   np.ascontiguousarray(np.asarray(bone_centres, np.float64).reshape(-1, 3).T),
+                   np.asarray(bone_radius, dtype=np.float64).ravel().copy(),
+                   np.asarray(bone, dtype=np.int64).ravel().copy())
+
+
+@njit(cache=True, inline="always")
+def sphere_push(xi, yi, zi, ri, xj, yj, zj, rj, i_before_j):
+    """Penetration (mm, > 0 when the spheres overlap) and the unit direction from sphere j to
+    sphere i. Coincident centres get a fixed axis, signed by which sphere comes first, so that
+    the two spheres still move apart."""
+    dx = xi - xj
+    dy = yi - yj
+    dz = zi - zj
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    pen = ri + rj - dist
+    if pen <= 0.0:
+        return pen, 0.0, 0.0, 0.0
+    if dist > 0.0:
+        return pen, dx / dist, dy / dist, dz / dist
+    return pen, (-1.0 if i_before_j else 1.0), 0.0, 0.0
+
+
+@njit(cache=True, inline="always")
+def push_share(fixed_self, other_moves):
+    """The paper's rule: the part of the penetration a sphere moves — half when both are free,
+    the whole when the other is fixed or a bone sphere, nothing when it is fixed itself."""
+    if fixed_self:
+        return 0.0
+    return 0.5 if other_moves else 1.0
+
+
+@njit(cache=True, inline="always")
+def deeper(pen, partner, best_pen, best_partner):
+    """Whether a pair of penetration ``pen`` with sphere ``partner`` replaces the deepest pair
+    found so far with the same object (ties: the lower partner index, so that the order in
+    which a structure finds the pairs does not matter)."""
+    return pen > best_pen or (pen == best_pen and partner < best_partner)
+
+
+@njit(cache=True)
+def now():
+    """Wall-clock seconds (for the per-iteration timings inside kernels)."""
+    with numba.objmode(t="float64"):
+        t = time.perf_counter()
+    return t

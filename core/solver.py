@@ -1,0 +1,471 @@
+"""The relaxation loop of the paper's §3.1 and §3.3: MSS update, then collision handling.
+
+Each iteration:
+
+1. mass-spring update (:func:`muscle_mss.core.mss.mss_step`: Hooke + damping along the spring,
+   semi-implicit Euler, fixed particles stay);
+2. collision detection among the boundary spheres of different muscles and between muscle
+   spheres and bone spheres, through the chosen structure (:mod:`~muscle_mss.core.spatial_hash`,
+   the default, or the paper's :mod:`~muscle_mss.core.octree_bvh`); both find the same pairs;
+3. response exactly as the paper: per colliding pair each sphere moves half the penetration along
+   the centre line (the whole when the other is fixed or a bone sphere; nothing when it is fixed
+   itself); the displacements are accumulated and applied after all tests, and the particles
+   that collided get zero velocity;
+4. per muscle the mean displacement ``mean |x_k - x_{k-1}|`` (the paper's figures 5 and 6), the
+   colliding pairs, the deepest penetration and the elapsed seconds are recorded.
+
+Terminations (:data:`TERMINATIONS`): a fixed number of iterations; the mean displacement below a
+threshold (every muscle's, and not rising: the displacement first grows while the posed model
+starts to move, so a small value in the first iterations is no sign of rest); a wall-clock
+budget (checked after every iteration). ``iterations`` caps all three. A muscle whose mean
+displacement is not finite or exceeds its own size in one iteration has diverged: the solve
+stops with a :class:`MuscleMSSError` naming it.
+
+The loop runs in Numba kernels of :data:`CHUNK_SECONDS` each; between chunks ``progress(f)`` is
+called and may return True to abort. Every sum has a fixed order: the same inputs give
+bitwise the same result on the same machine, whatever the thread count.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit, prange
+
+from . import octree_bvh, spatial_hash
+from .errors import MuscleMSSError
+from .mss import Spheres, lattice_order, make_spheres, mss_step, now, spring_layout
+
+# OpenMP threads that spin while waiting starve the working thread when the cores are shared
+# (other processes, the ParaView GUI): a solve of the small demo took 24 s instead of 2 s on a
+# busy 2-core machine. Must be set before the first parallel kernel runs; a user's value wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+TERMINATIONS = ("iterations", "displacement threshold", "time budget")
+STRUCTURES = ("spatial hash", "octree BVH")
+# Stable with margin for the Spring Builder defaults (k = 10 g/s^2, c = 0.5 g/s, m = 1 g) and
+# lattice-26: a particle's stiffest mode is below sqrt(2 * 26 * k / m) ~ 23 rad/s, and
+# symplectic Euler needs omega * dt < 2; 0.05 s gives 1.1 in that worst case.
+DEFAULT_TIME_STEP = 0.05
+CHUNK_SECONDS = 0.1
+
+RUNNING, CONVERGED, OUT_OF_TIME, DIVERGED = range(4)
+
+
+@dataclass
+class MSSModel:
+    """The posed mass-spring model of all muscles (arrays concatenated muscle after muscle).
+
+    ``names`` the muscles; ``offsets`` (M+1,) their particle ranges; ``positions`` (n, 3) mm
+    posed; ``fixed``, ``boundary`` (n,) bool; ``mass`` (n,) g; ``radius`` (n,) mm;
+    ``fibre_id``, ``fibre_index`` (n,) int and optional ``fibre_grid`` (n, 2) (only to order the
+    particles for speed); ``springs`` (S, 2) int global particle indices; ``rest_length`` mm,
+    ``stiffness`` g/s^2, ``damping`` g/s (S,).
+    """
+
+    names: list
+    offsets: np.ndarray
+    positions: np.ndarray
+    fixed: np.ndarray
+    mass: np.ndarray
+    boundary: np.ndarray
+    radius: np.ndarray
+    fibre_id: np.ndarray
+    fibre_index: np.ndarray
+    springs: np.ndarray
+    rest_length: np.ndarray
+    stiffness: np.ndarray
+    damping: np.ndarray
+    fibre_grid: np.ndarray | None = None
+
+
+@dataclass
+class SolverSettings:
+    """The solver's parameters (the filter's properties)."""
+
+    termination: str = "iterations"
+    iterations: int = 500
+    displacement_threshold: float = 1e-3    # mm per iteration
+    time_budget: float = 1.0                # s
+    time_step: float = DEFAULT_TIME_STEP    # s
+    structure: str = "spatial hash"
+    bvh_max_depth: int = octree_bvh.MAX_DEPTH
+    bvh_min_primitives: int = octree_bvh.MIN_PRIMITIVES
+    muscle_muscle: bool = True
+    muscle_bone: bool = True
+
+
+@dataclass
+class SolveResult:
+    """Solved state (input particle order) and the per-iteration history.
+
+    ``positions``, ``velocity`` (n, 3) mm, mm/s; ``collided`` (n,) bool (last iteration);
+    ``mean_displacement`` (K, M) mm; ``muscle_pairs``, ``bone_pairs`` (K,) colliding pairs;
+    ``max_penetration`` (K,) mm (deepest before the response); ``seconds`` (K,) cumulative;
+    ``phase_seconds`` MSS / muscle-muscle CD / muscle-bone CD totals; ``stopped_by`` the
+    termination that ended the loop.
+    """
+
+    positions: np.ndarray
+    velocity: np.ndarray
+    collided: np.ndarray
+    mean_displacement: np.ndarray
+    muscle_pairs: np.ndarray
+    bone_pairs: np.ndarray
+    max_penetration: np.ndarray
+    seconds: np.ndarray
+    phase_seconds: dict = field(default_factory=dict)
+    stopped_by: str = "iterations"
+    rebuilds: int = 0
+
+    @property
+    def iterations(self) -> int:
+        return len(self.seconds)
+
+    @property
+    def colliding_pairs(self) -> np.ndarray:
+        return self.muscle_pairs + self.bone_pairs
+
+
+@dataclass
+class PreparedModel:
+    """What depends only on the model's topology: particle order and spring layout."""
+
+    order: np.ndarray
+    offsets: np.ndarray
+    layout: object
+    inv_mass: np.ndarray
+    radius: np.ndarray
+    muscle: np.ndarray
+    fixed: np.ndarray
+    boundary: np.ndarray
+
+
+def prepare(model: MSSModel) -> PreparedModel:
+    """Order the particles (lattice neighbours at constant offsets) and group the springs;
+    reusable for every pose of the same model."""
+    offsets = np.asarray(model.offsets, dtype=np.int64)
+    n = int(offsets[-1])
+    order = np.empty(n, dtype=np.int64)
+    for m in range(len(offsets) - 1):
+        lo, hi = offsets[m], offsets[m + 1]
+        grid = None if model.fibre_grid is None else model.fibre_grid[lo:hi]
+        order[lo:hi] = lo + lattice_order(model.fibre_id[lo:hi], model.fibre_index[lo:hi], grid)
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    springs = rank[np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)]
+    layout = spring_layout(springs, model.rest_length, model.stiffness, model.damping, offsets)
+    fixed = np.asarray(model.fixed, dtype=bool)[order]
+    inv_mass = np.where(fixed, 0.0, 1.0 / np.asarray(model.mass, dtype=np.float64)[order])
+    muscle = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    return PreparedModel(order, offsets, layout, inv_mass,
+                         np.asarray(model.radius, dtype=np.float64)[order], muscle, fixed,
+                         np.asarray(model.boundary, dtype=bool)[order])
+
+
+# ---- the kernel ------------------------------------------------------------------------------
+
+@njit(cache=True, parallel=True)
+def _gather(x, particle, centres, disp, collided):
+    for s in prange(particle.shape[0]):
+        for axis in range(3):
+            centres[axis, s] = x[axis, particle[s]]
+    for g in prange(disp.shape[1]):
+        for axis in range(3):
+            disp[axis, g] = 0.0
+        collided[g] = 0
+
+
+@njit(cache=True, parallel=True)
+def _moved_too_far(centres, built, limit, far):
+    """Whether a sphere moved more than ``limit`` mm since the candidate lists were built."""
+    for s in prange(centres.shape[1]):
+        d2 = 0.0
+        for axis in range(3):
+            d2 += (centres[axis, s] - built[axis, s]) ** 2
+        far[s] = d2 > limit * limit
+    for s in range(centres.shape[1]):
+        if far[s]:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _tally(pair_count, pair_pen):
+    count = 0
+    deepest = 0.0
+    for s in range(pair_count.shape[0]):
+        count += pair_count[s]
+        deepest = max(deepest, pair_pen[s])
+    return count, deepest
+
+
+@njit(cache=True, parallel=True)
+def _apply(x, v, x_prev, particle, disp, collided, offsets, mean_disp):
+    """Apply the accumulated displacements, stop the collided particles and measure each
+    muscle's mean displacement of this iteration into ``mean_disp`` (M,)."""
+    for s in prange(particle.shape[0]):
+        if collided[s]:
+            p = particle[s]
+            for axis in range(3):
+                x[axis, p] += disp[axis, s]
+                v[axis, p] = 0.0
+    for m in prange(offsets.shape[0] - 1):
+        total = 0.0
+        for p in range(offsets[m], offsets[m + 1]):
+            d2 = 0.0
+            for axis in range(3):
+                d2 += (x[axis, p] - x_prev[axis, p]) ** 2
+            total += np.sqrt(d2)
+        mean_disp[m] = total / max(offsets[m + 1] - offsets[m], 1)
+
+
+@njit(cache=True, parallel=True)
+def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, started):
+    (x, v, x_prev, force, scratch, inv_mass, offsets, runs_int, runs_param, lane_rest, run_ptr,
+     scattered_int, scattered_param, scattered_ptr) = mss
+    (particle, radius, muscle, fixed, moves, centres, disp, collided, pair_count,
+     pair_pen, far) = spheres
+    (bone_centres, bone_radius, bone_object, bone_moves, bone_table, muscle_cell, skin,
+     mm_built, mb_built, longest, mm_begin, mm_end, mm_idx, mb_begin, mb_end, mb_idx,
+     room) = hashed
+    (b_centres, b_radius, b_fixed, perm, b_scratch, object_first, static, node_int, node_box,
+     node_stamp, stack, state, best_pen, best_dir, best_partner, touched, n_muscles, max_depth,
+     min_primitives, no_pairs, n_pairs) = bvh
+    mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
+    (dt, use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit) = control
+    ns = particle.shape[0]
+    status = RUNNING
+    bad = -1
+    rebuilds = 0
+    it = first
+    while it < last and status == RUNNING:
+        t0 = now()
+        mss_step(x, v, x_prev, force, scratch, inv_mass, dt, offsets, runs_int, runs_param,
+                 lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+        t1 = now()
+        _gather(x, particle, centres, disp, collided)
+        mm_count = 0
+        mb_count = 0
+        deepest = 0.0
+        if use_bvh:
+            state[1] += 1
+            for axis in range(3):
+                b_centres[axis, :ns] = centres[axis]
+            if muscle_muscle:
+                mm_count, deepest = octree_bvh.bvh_pass(
+                    False, n_muscles, max_depth, min_primitives, b_centres, b_radius, b_fixed,
+                    perm, b_scratch, object_first, static, node_int, node_box, node_stamp, stack,
+                    state, best_pen, best_dir, best_partner, touched, disp, collided, no_pairs,
+                    n_pairs)
+            t2 = now()
+            if muscle_bone:
+                mb_count, pen = octree_bvh.bvh_pass(
+                    True, n_muscles, max_depth, min_primitives, b_centres, b_radius, b_fixed,
+                    perm, b_scratch, object_first, static, node_int, node_box, node_stamp, stack,
+                    state, best_pen, best_dir, best_partner, touched, disp, collided, no_pairs,
+                    n_pairs)
+                deepest = max(deepest, pen)
+        else:
+            if muscle_muscle:
+                if _moved_too_far(centres, mm_built, 0.5 * skin, far):
+                    rebuilds += 1
+                    mm_built[:, :] = centres
+                    table = spatial_hash.grid_table(centres, radius, muscle_cell, muscle)
+                    mm_begin, mm_end, mm_idx = spatial_hash.candidate_lists(
+                        centres, radius, muscle, table, skin)
+                spatial_hash.list_contacts(centres, radius, fixed, mm_begin, mm_end, mm_idx,
+                                           centres, radius, muscle, moves, True, disp, collided,
+                                           pair_count, pair_pen)
+                mm_count, deepest = _tally(pair_count, pair_pen)
+            t2 = now()
+            if muscle_bone:
+                found = spatial_hash.refresh_own_lists(
+                    centres, radius, muscle, bone_table, skin, mb_built, mb_begin, mb_end,
+                    mb_idx, room, longest)
+                if found > room:
+                    room = 2 * found
+                    mb_idx = np.empty(ns * room, dtype=np.int64)
+                    mb_built[:, :] = np.inf
+                    spatial_hash.refresh_own_lists(
+                        centres, radius, muscle, bone_table, skin, mb_built, mb_begin, mb_end,
+                        mb_idx, room, longest)
+                spatial_hash.list_contacts(centres, radius, fixed, mb_begin, mb_end, mb_idx,
+                                           bone_centres, bone_radius, bone_object, bone_moves,
+                                           False, disp, collided, pair_count, pair_pen)
+                mb_count, pen = _tally(pair_count, pair_pen)
+                deepest = max(deepest, pen)
+        t3 = now()
+        _apply(x, v, x_prev, particle, disp, collided, offsets, mean_disp[it])
+        t4 = now()
+        phases[0] += (t1 - t0) + (t4 - t3)
+        phases[1] += t2 - t1
+        phases[2] += t3 - t2
+        muscle_pairs[it] = mm_count
+        bone_pairs[it] = mb_count
+        max_pen[it] = deepest
+        seconds[it] = t4 - started
+        top = 0.0
+        for m in range(mean_disp.shape[1]):
+            if not mean_disp[it, m] <= limit[m]:
+                status = DIVERGED
+                bad = m
+                break
+            top = max(top, mean_disp[it, m])
+        if status == RUNNING and termination == 1 and it > 0 and top < threshold:
+            previous = 0.0
+            for m in range(mean_disp.shape[1]):
+                previous = max(previous, mean_disp[it - 1, m])
+            if top <= previous:
+                status = CONVERGED
+        if status == RUNNING and termination == 2 and seconds[it] >= budget:
+            status = OUT_OF_TIME
+        it += 1
+    return status, it, bad, rebuilds, mm_begin, mm_end, mm_idx, mb_begin, mb_end, mb_idx, room
+
+
+# ---- the driver ------------------------------------------------------------------------------
+
+def _check_settings(settings: SolverSettings) -> None:
+    if settings.termination not in TERMINATIONS:
+        raise MuscleMSSError(f"termination {settings.termination!r} is not one of "
+                             f"{', '.join(TERMINATIONS)}")
+    if settings.structure not in STRUCTURES:
+        raise MuscleMSSError(f"collision structure {settings.structure!r} is not one of "
+                             f"{', '.join(STRUCTURES)}")
+    for name, value in (("iterations", settings.iterations),
+                        ("time step", settings.time_step),
+                        ("BVH max depth", settings.bvh_max_depth),
+                        ("BVH min primitives", settings.bvh_min_primitives)):
+        if not value > 0:
+            raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
+    if not settings.displacement_threshold >= 0.0 or not settings.time_budget >= 0.0:
+        raise MuscleMSSError("solver displacement threshold and time budget must be 0 or more")
+
+
+def _divergence_limits(positions, offsets) -> np.ndarray:
+    """(M,) mm: a muscle's bounding-box diagonal (at least 1 mm) — no sane iteration moves its
+    particles that far on average."""
+    limits = np.empty(len(offsets) - 1)
+    for m in range(len(limits)):
+        part = positions[offsets[m]:offsets[m + 1]]
+        limits[m] = max(float(np.linalg.norm(part.max(axis=0) - part.min(axis=0))), 1.0) \
+            if len(part) else 1.0
+    return limits
+
+
+def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
+          settings: SolverSettings | None = None, progress=None,
+          prepared: PreparedModel | None = None) -> SolveResult:
+    """Relax the posed model with collisions (see the module docstring).
+
+    ``bone_centres`` (b, 3) mm, ``bone_radius`` (b,) mm, ``bone_id`` (b,) int, sorted, from
+    :func:`muscle_mss.core.bone_spheres.bone_spheres` on the posed bones (omit for no bones);
+    ``progress(fraction) -> bool`` is called between chunks, True aborts with a
+    :class:`MuscleMSSError`; ``prepared`` from :func:`prepare` for this model's topology.
+    """
+    settings = settings or SolverSettings()
+    _check_settings(settings)
+    prep = prepared if prepared is not None else prepare(model)
+    offsets = prep.offsets
+    n = int(offsets[-1])
+    n_muscles = len(offsets) - 1
+    posed = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)[prep.order]
+    x = np.ascontiguousarray(posed.T)
+    v = np.zeros_like(x)
+    work = np.zeros((3, 3, n))
+    mss = (x, v, work[0], work[1], work[2], prep.inv_mass, offsets) + prep.layout.arrays
+
+    if bone_centres is None:
+        bone_centres, bone_radius, bone_id = np.zeros((0, 3)), np.zeros(0), np.zeros(0, int)
+    spheres = make_spheres(prep.radius, prep.muscle, prep.fixed, prep.boundary, bone_centres,
+                           bone_radius, bone_id)
+    ns = spheres.count
+    nb = len(spheres.bone_radius)
+    sphere_state = (spheres.particle, spheres.radius, spheres.muscle, spheres.fixed,
+                    ~spheres.fixed, np.zeros((3, ns)), np.zeros((3, ns + nb)),
+                    np.zeros(ns + nb, dtype=np.uint8), np.zeros(ns, dtype=np.int64),
+                    np.zeros(ns), np.zeros(ns, dtype=np.uint8))
+    hashed = _hash_state(spheres, settings.structure == "spatial hash")
+    bvh = _bvh_state(spheres, settings)
+
+    cap = int(settings.iterations)
+    history = (np.zeros((cap, n_muscles)), np.zeros(cap, dtype=np.int64),
+               np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap), np.zeros(3))
+    control = (float(settings.time_step), settings.structure == "octree BVH",
+               bool(settings.muscle_muscle), bool(settings.muscle_bone),
+               TERMINATIONS.index(settings.termination), float(settings.displacement_threshold),
+               float(settings.time_budget), _divergence_limits(posed, offsets))
+
+    started = time.perf_counter()
+    done = 0
+    chunk = 1
+    status = RUNNING
+    rebuilds = 0
+    lists = hashed[-7:]
+    while done < cap and status == RUNNING:
+        before = done
+        tick = time.perf_counter()
+        status, done, bad, more, *lists = _solve_chunk(
+            mss, sphere_state, hashed[:-7] + tuple(lists), bvh, history, control, done,
+            min(cap, done + chunk), started)
+        rebuilds += more
+        per_iteration = (time.perf_counter() - tick) / max(done - before, 1)
+        chunk = int(min(max(CHUNK_SECONDS / max(per_iteration, 1e-9), 1), 1000))
+        if status == DIVERGED:
+            raise MuscleMSSError(
+                f"muscle '{model.names[bad]}' diverged at iteration {done}: its mean particle "
+                f"displacement was {history[0][done - 1, bad]:.3g} mm in one iteration; lower "
+                f"the TimeStep (now {settings.time_step} s) or check stiffness and mass")
+        fraction = done / cap
+        if settings.termination == "time budget" and settings.time_budget > 0:
+            fraction = max(fraction, history[4][done - 1] / settings.time_budget)
+        if progress is not None and status == RUNNING and done < cap and progress(fraction):
+            raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
+
+    rank = np.empty(n, dtype=np.int64)
+    rank[prep.order] = np.arange(n)
+    collided = np.zeros(n, dtype=bool)
+    collided[spheres.particle] = sphere_state[7][:ns] > 0
+    stopped_by = {RUNNING: "iterations", CONVERGED: "displacement threshold",
+                  OUT_OF_TIME: "time budget"}[status]
+    mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
+    return SolveResult(
+        x.T[rank].copy(), v.T[rank].copy(), collided[rank], mean_disp[:done].copy(),
+        muscle_pairs[:done].copy(), bone_pairs[:done].copy(), max_pen[:done].copy(),
+        seconds[:done].copy(),
+        {"mss": float(phases[0]), "muscle_cd": float(phases[1]), "bone_cd": float(phases[2])},
+        stopped_by, rebuilds)
+
+
+def _hash_state(spheres: Spheres, used: bool) -> tuple:
+    """The spatial hash's arrays for the kernel: the bone table is built here once (bones do
+    not move during a solve); the candidate lists in the first iteration."""
+    ns = spheres.count
+    skin = spatial_hash.skin_width(spheres)
+    bone_object = spheres.bone + spheres.n_muscles
+    centres = spheres.bone_centres if used else np.zeros((3, 0))
+    table = spatial_hash.grid_table(centres, spheres.bone_radius if used else np.zeros(0),
+                                    spatial_hash.bone_cell(spheres, skin),
+                                    bone_object if used else np.zeros(0, np.int64))
+    empty = np.zeros(ns, dtype=np.int64)
+    room = spatial_hash.INITIAL_ROOM
+    return (spheres.bone_centres, spheres.bone_radius, bone_object,
+            np.zeros(len(spheres.bone_radius), dtype=np.bool_), table,
+            spatial_hash.muscle_cell(spheres, skin), skin, np.full((3, ns), np.inf),
+            np.full((3, ns), np.inf), np.zeros(ns, dtype=np.int64),
+            empty, empty.copy(), np.zeros(0, np.int64),
+            empty.copy(), empty.copy(), np.zeros(ns * room, np.int64), room)
+
+
+def _bvh_state(spheres: Spheres, settings: SolverSettings) -> tuple:
+    if settings.structure == "octree BVH":
+        tree = octree_bvh.octree_bvh(spheres, int(settings.bvh_max_depth),
+                                     int(settings.bvh_min_primitives))
+    else:
+        tree = octree_bvh.octree_bvh(make_spheres(np.zeros(0), np.zeros(0, np.int64),
+                                                  np.zeros(0, bool), np.zeros(0, bool)))
+    return tree.arrays + (tree.n_muscles, tree.max_depth, tree.min_primitives,
+                          np.zeros((0, 2), dtype=np.int64), np.zeros(1, dtype=np.int64))
