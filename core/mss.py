@@ -120,7 +120,7 @@ def spring_layout(springs, rest_length, stiffness, damping, muscle_offsets) -> S
     new_group[1:] = ((muscle[1:] != muscle[:-1]) | (d[1:] != d[:-1]) | (k[1:] != k[:-1])
                      | (c[1:] != c[:-1]))
     starts = np.flatnonzero(new_group)
-    ends = np.append(starts[1:], len(a))
+    ends = np.append(starts[1:], len(a)) if len(a) else starts
     span = a[ends - 1] - a[starts] + 1
     # a repeated spring would need two springs in one lane: its run takes the scalar loop
     repeated = np.zeros(len(a), dtype=bool)

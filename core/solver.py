@@ -345,14 +345,14 @@ def _check_settings(settings: SolverSettings) -> None:
         raise MuscleMSSError("solver displacement threshold and time budget must be 0 or more")
 
 
-def _divergence_limits(positions, offsets) -> np.ndarray:
-    """(M,) mm: a muscle's bounding-box diagonal (at least 1 mm) — no sane iteration moves its
-    particles that far on average."""
+def _divergence_limits(positions, offsets, reach) -> np.ndarray:
+    """(M,) mm: a muscle's bounding-box diagonal plus ``reach`` (the farthest one collision
+    push can move a sphere) — no sane iteration moves its particles that far on average."""
     limits = np.empty(len(offsets) - 1)
     for m in range(len(limits)):
         part = positions[offsets[m]:offsets[m + 1]]
-        limits[m] = max(float(np.linalg.norm(part.max(axis=0) - part.min(axis=0))), 1.0) \
-            if len(part) else 1.0
+        size = float(np.linalg.norm(part.max(axis=0) - part.min(axis=0))) if len(part) else 0.0
+        limits[m] = size + reach + 1.0
     return limits
 
 
@@ -397,7 +397,9 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     control = (float(settings.time_step), settings.structure == "octree BVH",
                bool(settings.muscle_muscle), bool(settings.muscle_bone),
                TERMINATIONS.index(settings.termination), float(settings.displacement_threshold),
-               float(settings.time_budget), _divergence_limits(posed, offsets))
+               float(settings.time_budget),
+               _divergence_limits(posed, offsets, 2.0 * (max(spheres.radius, default=0.0)
+                                                         + max(spheres.bone_radius, default=0.0))))
 
     started = time.perf_counter()
     done = 0

@@ -1,0 +1,209 @@
+"""Collision detection and response (core/spatial_hash.py, core/octree_bvh.py,
+core/bone_spheres.py and the response rule of core/mss.py)."""
+import numpy as np
+import pytest
+
+from muscle_mss.core import mss, octree_bvh, spatial_hash, solver
+from muscle_mss.core.bone_spheres import SPHERES_PER_AREA, bone_spheres, surface_area
+from muscle_mss.core.errors import MuscleMSSError
+
+STRUCTURES = solver.STRUCTURES
+
+
+def loose_model(positions, radii, muscles, fixed=None, springs=None, rest=None):
+    """Particles without springs (or with the given ones), every particle a boundary sphere."""
+    positions = np.asarray(positions, float).reshape(-1, 3)
+    n = len(positions)
+    muscles = np.asarray(muscles)
+    offsets = np.concatenate([[0], np.cumsum(np.bincount(muscles))])
+    springs = np.zeros((0, 2), int) if springs is None else np.asarray(springs)
+    rest = np.zeros(0) if rest is None else np.asarray(rest, float)
+    return solver.MSSModel(
+        [f"m{m}" for m in range(len(offsets) - 1)], offsets, positions,
+        np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool), np.ones(n),
+        np.ones(n, bool), np.asarray(radii, float), np.arange(n), np.zeros(n, int), springs,
+        rest, np.full(len(rest), 10.0), np.full(len(rest), 0.5))
+
+
+def one_iteration(model, structure, bones=(None, None, None)):
+    settings = solver.SolverSettings(iterations=1, structure=structure)
+    return solver.solve(model, *bones, settings=settings)
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_two_free_muscle_spheres_move_half_each(structure):
+    model = loose_model([[0, 0, 0], [1.5, 0.4, -0.2]], [1.0, 0.8], [0, 1])
+    result = one_iteration(model, structure)
+    a, b = result.positions
+    assert np.linalg.norm(a - b) == pytest.approx(1.8, abs=1e-12)
+    np.testing.assert_allclose((a + b) / 2, [0.75, 0.2, -0.1], atol=1e-12)
+    direction = np.array([1.5, 0.4, -0.2]) / np.linalg.norm([1.5, 0.4, -0.2])
+    np.testing.assert_allclose(np.cross(b - a, direction), 0, atol=1e-12)
+    assert result.collided.all() and result.muscle_pairs[0] == 1
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_free_sphere_moves_whole_penetration_when_the_other_is_fixed(structure):
+    model = loose_model([[0, 0, 0], [0, 1.0, 0]], [1.0, 0.5], [0, 1], fixed=[True, False])
+    result = one_iteration(model, structure)
+    assert np.array_equal(result.positions[0], [0, 0, 0])
+    np.testing.assert_allclose(result.positions[1], [0, 1.5, 0], atol=1e-12)
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_two_fixed_spheres_do_not_move(structure):
+    model = loose_model([[0, 0, 0], [0, 1.0, 0]], [1.0, 0.5], [0, 1], fixed=[True, True])
+    result = one_iteration(model, structure)
+    assert np.array_equal(result.positions, model.positions)
+    assert result.muscle_pairs[0] == 1
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_muscle_sphere_moves_whole_penetration_out_of_a_bone_sphere(structure):
+    model = loose_model([[0, 0, 1.0]], [1.0], [0])
+    bones = (np.array([[0.0, 0.0, 0.0]]), np.array([0.5]), np.array([0]))
+    result = one_iteration(model, structure, bones)
+    np.testing.assert_allclose(result.positions[0], [0, 0, 1.5], atol=1e-12)
+    assert result.bone_pairs[0] == 1 and result.max_penetration[0] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_sphere_on_a_dense_bone_sheet_is_lifted_onto_it_not_thrown(structure):
+    # one push per other object: that of the deepest pair (the paper's sum would add ~40 pushes)
+    g = np.arange(-6, 6.5, 0.5)
+    sheet = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    model = loose_model([[0.0, 0.0, 1.2]], [2.0], [0])
+    result = one_iteration(model, structure, (sheet, np.full(len(sheet), 0.5),
+                                              np.zeros(len(sheet), int)))
+    assert result.bone_pairs[0] > 30
+    np.testing.assert_allclose(result.positions[0], [0, 0, 2.5], atol=1e-12)
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_collided_particles_lose_their_velocity(structure):
+    # particle 1 is pulled by a stretched spring; particle 2 (same pull) ends in a bone sphere
+    positions = [[0, 0, 0], [0, 0, 3.0], [10, 0, 0], [10, 0, 3.0]]
+    model = loose_model(positions, [0.1, 0.1, 0.1, 0.1], [0, 0, 1, 1],
+                        fixed=[True, False, True, False], springs=[[0, 1], [2, 3]],
+                        rest=[1.0, 1.0])
+    bones = (np.array([[10.0, 0.0, 2.9]]), np.array([0.2]), np.array([0]))
+    result = one_iteration(model, structure, bones)
+    assert result.collided.tolist() == [False, False, False, True]
+    assert np.abs(result.velocity[1]).max() > 0.1
+    assert np.array_equal(result.velocity[3], [0, 0, 0])
+
+
+def random_cloud(seed, n=1500, muscles=5, bones=3):
+    rng = np.random.default_rng(seed)
+    muscle = np.sort(rng.integers(0, muscles, n))
+    spheres = mss.make_spheres(rng.random(n) * 2 + 0.1, muscle, rng.random(n) < 0.1,
+                               rng.random(n) < 0.85, rng.random((500, 3)) * 40,
+                               rng.random(500) + 0.5, np.sort(rng.integers(0, bones, 500)))
+    return rng.random((n, 3))[spheres.particle] * 40, spheres
+
+
+def brute_force_pairs(centres, spheres):
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    reach = spheres.radius[:, None] + spheres.radius[None]
+    i, j = np.nonzero((d < reach) & (spheres.muscle[:, None] != spheres.muscle[None])
+                      & np.triu(np.ones_like(d, bool), 1))
+    db = np.linalg.norm(centres[:, None] - spheres.bone_centres.T[None], axis=2)
+    k, b = np.nonzero(db < spheres.radius[:, None] + spheres.bone_radius[None])
+    return np.stack([i, j], 1), np.stack([k, b], 1)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_hash_and_bvh_find_the_same_pairs_as_brute_force_on_random_clouds(seed):
+    centres, spheres = random_cloud(seed)
+    want = brute_force_pairs(centres, spheres)
+    assert len(want[0]) > 50 and len(want[1]) > 50
+    hashed = spatial_hash.colliding_pairs(centres, spheres)
+    bvh = octree_bvh.colliding_pairs(centres, octree_bvh.octree_bvh(spheres))
+    for got in (hashed, bvh):
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_hash_and_bvh_find_the_same_pairs_on_packed_lattices():
+    # three lattices of touching spheres pressed 0.3 mm into each other, a bone sheet below
+    g = np.arange(0, 10, 1.0)
+    block = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    centres = np.concatenate([block, block + [9.7, 0, 0], block + [0, 9.7, 0]])
+    muscle = np.repeat([0, 1, 2], len(block))
+    sheet = np.stack(np.meshgrid(np.arange(-2, 22, 0.7), np.arange(-2, 22, 0.7), [-0.8],
+                                 indexing="ij"), -1).reshape(-1, 3)
+    spheres = mss.make_spheres(np.full(len(centres), 0.5), muscle, np.zeros(len(centres), bool),
+                               np.ones(len(centres), bool), sheet, np.full(len(sheet), 0.6),
+                               np.zeros(len(sheet), int))
+    hashed = spatial_hash.colliding_pairs(centres, spheres)
+    bvh = octree_bvh.colliding_pairs(centres, octree_bvh.octree_bvh(spheres, 8, 10))
+    assert len(hashed[0]) > 100 and len(hashed[1]) > 100
+    assert np.array_equal(hashed[0], bvh[0]) and np.array_equal(hashed[1], bvh[1])
+
+
+def test_bvh_refits_after_motion_and_keeps_finding_the_same_pairs():
+    centres, spheres = random_cloud(5)
+    tree = octree_bvh.octree_bvh(spheres, 8, 10)
+    octree_bvh.colliding_pairs(centres, tree)
+    nodes = tree.state[0]
+    moved = centres + np.random.default_rng(9).normal(scale=1.5, size=centres.shape)
+    got = octree_bvh.colliding_pairs(moved, tree)
+    want = brute_force_pairs(moved, spheres)
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert tree.state[0] >= nodes
+
+
+def icosphere_like(radius=20.0, n=40):
+    """A closed UV sphere surface (points, triangles)."""
+    theta = np.linspace(0, np.pi, n)[1:-1]
+    phi = np.linspace(0, 2 * np.pi, 2 * n, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    pts = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    pts = np.concatenate([pts, [[0, 0, 1], [0, 0, -1]]]) * radius
+    rings, per = len(theta), len(phi)
+    tris = []
+    for r in range(rings - 1):
+        for k in range(per):
+            a, b = r * per + k, r * per + (k + 1) % per
+            c, d = a + per, b + per
+            tris += [[a, c, b], [b, c, d]]
+    top, bottom = len(pts) - 2, len(pts) - 1
+    for k in range(per):
+        tris.append([top, k, (k + 1) % per])
+        last = (rings - 1) * per
+        tris.append([bottom, last + (k + 1) % per, last + k])
+    return pts, np.array(tris)
+
+
+def test_bone_spheres_are_spaced_cover_the_surface_and_are_deterministic():
+    pts, tris = icosphere_like()
+    spacing = 2.0
+    centres, radii = bone_spheres(pts, tris, spacing)
+    again, _ = bone_spheres(pts, tris, spacing)
+    assert np.array_equal(centres, again)
+    assert np.all(radii == spacing)
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.eye(len(centres)) * 1e9
+    assert d.min() >= spacing
+    # every surface vertex and edge midpoint lies inside a sphere
+    probes = np.concatenate([pts, (pts[tris[:, 0]] + pts[tris[:, 1]]) / 2])
+    nearest = np.linalg.norm(probes[:, None] - centres[None], axis=2).min(axis=1)
+    assert nearest.max() < spacing
+    expected = SPHERES_PER_AREA * surface_area(pts, tris) / spacing ** 2
+    assert abs(len(centres) / expected - 1) < 0.15
+
+
+def test_bone_spheres_by_count_give_exactly_that_count():
+    pts, tris = icosphere_like()
+    centres, radii = bone_spheres(pts, tris, count=700)
+    assert len(centres) == 700 and len(radii) == 700
+
+
+def test_bone_spheres_refuse_bad_surfaces():
+    pts, tris = icosphere_like()
+    bad = pts.copy()
+    bad[3] = np.nan
+    with pytest.raises(MuscleMSSError, match="femur.*NaN"):
+        bone_spheres(bad, tris, 2.0, where="femur")
+    with pytest.raises(MuscleMSSError, match="positive"):
+        bone_spheres(pts, tris, 0.0)
+    with pytest.raises(MuscleMSSError, match="missing points"):
+        bone_spheres(pts, tris + len(pts), 2.0)
