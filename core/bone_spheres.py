@@ -5,8 +5,8 @@ set of spheres that approximates their surface").
 spacing: a dense set of candidate points (a barycentric grid on every triangle, at most
 spacing / 2 apart along its edges) is visited in a fixed pseudo-random order and a candidate is
 kept when no kept centre lies closer than ``spacing``. Every candidate, and so the surface up to
-spacing / 2, then lies within ``spacing`` of a centre; each sphere gets radius ``spacing``, so the spheres cover the
-surface without holes a muscle sphere could slip through. The same surface and spacing always
+spacing / 2, then lies within ``spacing`` of a centre; each sphere gets radius ``spacing``, so
+the spheres cover the surface without holes a muscle sphere could slip through. The same surface and spacing always
 give the same spheres.
 
 How the count follows from the spacing: such a random-order Poisson-disc set on a surface of

@@ -222,7 +222,6 @@ def _traverse(root_a, root_b, centres, radius, fixed, perm, scratch, static, nod
     stamp = state[1]
     count = 0
     deepest = 0.0
-    top = 0
     stack[0, 0] = root_a
     stack[1, 0] = root_b
     top = 1
@@ -234,7 +233,8 @@ def _traverse(root_a, root_b, centres, radius, fixed, perm, scratch, static, nod
         _refit(w, centres, radius, perm, static, node_int, node_box, node_stamp, stamp)
         apart = False
         for axis in range(3):
-            if node_box[axis, u] > node_box[3 + axis, w] or node_box[axis, w] > node_box[3 + axis, u]:
+            if (node_box[axis, u] > node_box[3 + axis, w]
+                    or node_box[axis, w] > node_box[3 + axis, u]):
                 apart = True
         if apart:
             continue
@@ -282,7 +282,8 @@ def bvh_pass(bones, n_muscles, max_depth, min_primitives, centres, radius, fixed
     """Every muscle against every other muscle (``bones`` False) or every bone (True).
 
     ``disp`` (3, G) mm and ``collided`` (G,) receive the response; returns (colliding pairs,
-    deepest penetration mm). Call :func:`next_iteration` when the muscle spheres have moved.
+    deepest penetration mm). Increment ``state[1]`` whenever the muscle spheres have moved, so
+    that their boxes are refitted.
     """
     count = 0
     deepest = 0.0
@@ -326,7 +327,3 @@ def colliding_pairs(centres, bvh: OctreeBVH):
         found.append(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))])
     return found[0], found[1]
 
-
-def next_iteration(bvh: OctreeBVH) -> None:
-    """Mark every muscle box stale (their spheres moved)."""
-    bvh.state[1] += 1

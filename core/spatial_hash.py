@@ -1,19 +1,24 @@
-"""The default collision structure: a spatial hash with skin-padded candidate lists.
+"""The default collision structure: spatial hashing on a uniform grid, with candidate lists.
 
-Spheres are hashed into a uniform grid (Teschner et al. 2003: the integer cell coordinates hashed
-into a power-of-two table) with cells of a typical interaction distance; sphere ``i`` visits the
-cells within ``r_i + r_max + skin`` of its centre (27 for a typical sphere, more for a large
-one). That gives, for each muscle sphere, the list of spheres of *other* objects within
-``r_i + r_j + skin``. Between rebuilds only those candidates are tested exactly; the lists stay
-complete while no muscle sphere has moved more than ``skin / 2`` since they were built (two
-spheres that were farther apart than ``r_i + r_j + skin`` cannot then have come closer than
-``r_i + r_j``), so the colliding pairs found are exactly those of a brute-force test.
-Bones do not move during a solve, so their table is built once.
+Spheres are hashed by their cell in a uniform grid (the key is the cell's linear index; the
+spheres are counting-sorted by key and copied in that order, so a query reads each cell's spheres
+contiguously; every cell also carries the bit set of its objects, so a query skips cells holding
+only its own muscle). Sphere ``i`` visits the cells within ``r_i + r_max + skin`` of its centre
+and lists the spheres of *other* objects within ``r_i + r_j + skin``. Between rebuilds only those
+candidates are tested exactly, so the colliding pairs found are exactly those of a brute-force
+test as long as the lists are complete:
+
+* muscle-muscle lists are rebuilt when any muscle sphere has moved more than ``skin / 2`` since
+  they were built (two spheres farther apart than ``r_i + r_j + skin`` cannot then have come
+  closer than ``r_i + r_j``);
+* bones do not move during a solve: their grid is built once, and each muscle sphere rebuilds
+  its own bone list when *it* has moved more than ``skin / 2`` (spheres pressed against a bone
+  jitter there every iteration; the others keep their lists).
 
 Every loop over spheres is a ``prange`` in which sphere ``i`` only writes its own entries (its
 candidates, its displacement): no atomics, and sums in a fixed order, so results do not depend
-on the thread count. The exact test and the response rule are :func:`muscle_mss.core.mss.sphere_push`
-and :func:`~muscle_mss.core.mss.push_share`, shared with :mod:`muscle_mss.core.octree_bvh`.
+on the thread count. The exact test and the response rule are those of
+:mod:`muscle_mss.core.mss`, shared with :mod:`muscle_mss.core.octree_bvh`.
 """
 from __future__ import annotations
 

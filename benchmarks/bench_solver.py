@@ -1,0 +1,113 @@
+"""Benchmark of the MSS Collision Solver on the paper's workload (DESIGN §9, paper §4.3).
+
+13 muscles of the full demo thigh, 64 fibres each (8 x 8 grid), lattice-26 springs, three bones
+sampled into exactly 8527 / 1568 / 1709 spheres, 500 iterations, at the walking pose a third into
+the motion. The paper's particle counts (1344 / 2624 / 3904 / 5184 per muscle for its "N = 20,
+40, 60, 80") are 64 * (N + 1): its N counts intervals, so this runs N + 1 particles per fibre to
+compare like with like. Prints a table of MSS, muscle-muscle CD and muscle-bone CD seconds for
+both collision structures, the total, the speed-up over the paper's Table 1 (i7-3770, one
+thread) and the machine, and writes it to benchmarks/results/solver.md.
+
+    python benchmarks/bench_solver.py [N ...]        (default: 20 40 60 80)
+"""
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from muscle_mss.core import solver as S
+from muscle_mss.core.bone_spheres import bone_spheres
+from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.filters import FibreResampler, RigidPoseTransform, SpringBuilder
+from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block
+from muscle_mss.filters.scene_io import scene_to_vtk
+from muscle_mss.filters import vtk_arrays as V
+
+PAPER = {20: (18.66, 8.15, 30.03, 56.84), 40: (39.97, 13.50, 37.43, 90.90),
+         60: (60.53, 24.00, 56.03, 140.56), 80: (80.70, 29.53, 67.10, 177.33)}
+BONE_COUNTS = {"pelvis": 8527, "femur": 1568, "tibia": 1709}
+ITERATIONS = 500
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def posed_workload(scene, n):
+    muscles, fibres, bones, motion = scene_to_vtk(scene)
+    resampler = FibreResampler()
+    resampler.SetInputDataObject(0, fibres)
+    resampler.SetParticlesPerFibre(n + 1)
+    resampler.SetRandomise(True)
+    builder = SpringBuilder()
+    builder.SetInputConnection(0, resampler.GetOutputPort())
+    builder.SetInputDataObject(1, muscles)
+    pose = RigidPoseTransform()
+    pose.SetInputConnection(0, builder.GetOutputPort())
+    pose.SetInputDataObject(1, bones)
+    pose.SetInputDataObject(2, motion)
+    pose.UpdateTimeStep(float(scene.motion.times[len(scene.motion.times) // 3]))
+    blocks = V.blocks(pose.GetOutputDataObject(0))
+    model = MSSCollisionSolver._model([b for b, _ in blocks],
+                                      [_muscle_block(name, block) for name, block in blocks])
+    centres, radii, ids = [], [], []
+    for k, (name, bone) in enumerate(V.blocks(pose.GetOutputDataObject(1))):
+        c, r = bone_spheres(V.points_of(bone), V.triangles_of(bone), count=BONE_COUNTS[name])
+        centres.append(c), radii.append(r), ids.append(np.full(len(c), k))
+    return model, (np.concatenate(centres), np.concatenate(radii), np.concatenate(ids))
+
+
+def main(sizes):
+    scene = demo_scene("full")
+    rows = []
+    for n in sizes:
+        model, bones = posed_workload(scene, n)
+        prepared = S.prepare(model)
+        per_muscle = int(np.diff(model.offsets)[0])
+        boundary = int(model.boundary.sum() / len(model.names))
+        for structure in S.STRUCTURES:
+            settings = S.SolverSettings(iterations=ITERATIONS, structure=structure)
+            S.solve(model, *bones, settings=S.SolverSettings(iterations=2, structure=structure),
+                    prepared=prepared)
+            start = time.perf_counter()
+            result = S.solve(model, *bones, settings=settings, prepared=prepared)
+            total = time.perf_counter() - start
+            p = result.phase_seconds
+            rows.append((n, per_muscle, boundary, structure, p["mss"], p["muscle_cd"],
+                         p["bone_cd"], total, PAPER[n][3] / total, os.getloadavg()[0]))
+            print(f"N={n} ({per_muscle} particles/muscle) {structure}: total {total:.2f} s "
+                  f"(MSS {p['mss']:.2f}, muscle CD {p['muscle_cd']:.2f}, bone CD "
+                  f"{p['bone_cd']:.2f}), load {os.getloadavg()[0]:.2f}", flush=True)
+    lines = [
+        "# MSS Collision Solver benchmark (paper's workload, 500 iterations)", "",
+        f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
+        f"({numba.config.THREADING_LAYER} threading, {numba.config.NUMBA_NUM_THREADS} threads), "
+        f"numpy {np.__version__}, Python {platform.python_version()}.",
+        "Load average (1 min) after each run is given: on a shared machine the numbers are "
+        "pessimistic.", "",
+        "| N | particles / muscle | boundary / muscle | structure | MSS s | muscle CD s | "
+        "bone CD s | total s | paper total s | speed-up | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for n, per, bnd, st, a, b, c, tot, speed, load in rows:
+        lines.append(f"| {n} | {per} | {bnd} | {st} | {a:.2f} | {b:.2f} | {c:.2f} | {tot:.2f} "
+                     f"| {PAPER[n][3]:.2f} | {speed:.0f}x | {load:.2f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    out = Path(__file__).resolve().parent / "results" / "solver.md"
+    out.write_text(text)
+
+
+if __name__ == "__main__":
+    main([int(a) for a in sys.argv[1:]] or [20, 40, 60, 80])
