@@ -1,15 +1,19 @@
 """The ``muscle-mss`` command: validate scenes, write the demo scene, run the demo and motions.
 
 ``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss demo-scene OUT``
-writes the deterministic demo thigh scene and its ``preview.png``.
+writes the deterministic demo thigh scene and its ``preview.png``; ``muscle-mss demo [OUT]`` writes
+the demo scene and runs its whole walk; ``muscle-mss run SCENE OUT`` does the same for a user's
+scene (see :mod:`muscle_mss.filters.motion_run` for the files written).
 """
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+import time as wallclock
 
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.scene import Scene
 
 
@@ -51,6 +55,111 @@ def cmd_demo_scene(args) -> int:
     return 0
 
 
+class ProgressBar:
+    """A one-line text progress bar on stderr: done/total, time point, seconds per step."""
+
+    def __init__(self, total: int, label: str, stream=sys.stderr, width: int = 30):
+        self.total, self.label, self.stream, self.width = total, label, stream, width
+        self.start = wallclock.perf_counter()
+
+    def update(self, done: int, note: str = "") -> None:
+        filled = int(self.width * done / max(self.total, 1))
+        rate = (wallclock.perf_counter() - self.start) / max(done, 1)
+        self.stream.write(f"\r{self.label} [{'#' * filled}{'.' * (self.width - filled)}] "
+                          f"{done}/{self.total} {note} {rate:.2f} s/step")
+        if done >= self.total:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+def summary_table(rows) -> str:
+    """Per muscle over the whole motion: mean and max volume error, max fibre strain, max
+    penetration, mean iterations and seconds per time point; then the mean over muscles."""
+    by_muscle = {}
+    for r in rows:
+        by_muscle.setdefault(r["muscle"], []).append(r)
+    header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
+              f"{'max pen mm':>10s} {'iters':>6s} {'s/time':>7s}")
+    lines = [header, "-" * len(header)]
+    means = []
+    for name, rs in by_muscle.items():
+        err = [float(r["volume_error_pct"]) for r in rs]
+        means.append(sum(err) / len(err))
+        lines.append(f"{name:28s} {means[-1]:14.2f} {max(err):7.2f} "
+                     f"{max(float(r['max_fibre_strain']) for r in rs):10.3f} "
+                     f"{max(float(r['max_penetration_mm']) for r in rs):10.3f} "
+                     f"{sum(int(r['iterations']) for r in rs) / len(rs):6.0f} "
+                     f"{sum(float(r['seconds']) for r in rs) / len(rs):7.2f}")
+    lines.append("-" * len(header))
+    lines.append(f"{'mean over muscles':28s} {sum(means) / max(len(means), 1):14.2f}")
+    return "\n".join(lines)
+
+
+def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene) -> list:
+    """Run a whole motion with a progress bar; write summary, series index and pictures; print
+    the summary table. Returns the summary rows."""
+    from . import motion_run
+    from .pictures import convergence_picture, poses_picture
+
+    bar = {}
+
+    def on_step(result, done, total):
+        bar.setdefault("bar", ProgressBar(total, "solving"))
+        bar["bar"].update(done, f"t={result.time:.3f} s")
+
+    pipeline, rows = motion_run.run_motion(scene_folder, out, settings, on_step=on_step)
+    motion_run.write_summary(out, rows)
+    motion_run.write_index(out, pipeline.times)
+    index = farthest_pose_index(scene.motion)
+    convergence_picture(os.path.join(out, "convergence", f"convergence_{index:04d}.csv"),
+                        os.path.join(out, "convergence.png"),
+                        title=f"convergence at t = {pipeline.times[index]:.3f} s")
+    poses_picture(pipeline, index, os.path.join(out, "poses.png"))
+    print(summary_table(rows))
+    print(f"wrote {out}: surfaces.pvd, fibres.pvd, particles.pvd, summary.csv, "
+          "convergence.png, poses.png")
+    return rows
+
+
+def cmd_demo(args) -> int:
+    scene_folder = os.path.join(args.out, "scene")
+    scene = write_demo_scene(scene_folder, args.size)
+    print(f"demo scene ({args.size}): {scene_counts(scene)} -> {scene_folder}")
+    run_and_report(scene_folder, args.out, settings_from(args), scene)
+    return 0
+
+
+def cmd_run(args) -> int:
+    from . import motion_run
+    from .scene_io import load_scene
+    scene = load_scene(args.scene)
+    print(f"{args.scene}: {scene_counts(scene)}")
+    if args.time is None:
+        run_and_report(args.scene, args.out, settings_from(args), scene)
+        return 0
+    pipeline = motion_run.build_pipeline(args.scene, settings_from(args))
+    index = min(range(len(pipeline.times)), key=lambda i: abs(pipeline.times[i] - args.time))
+    result = motion_run.solve_time_point(pipeline, index)
+    motion_run.write_time_point(result, args.out)
+    motion_run.write_summary(args.out, result.rows)
+    print(summary_table(result.rows))
+    return 0
+
+
+def settings_from(args) -> dict:
+    """Filter property settings from the options that were given."""
+    pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
+             ("Iterations", args.iterations))
+    return {name: value for name, value in pairs if value is not None}
+
+
+def _add_run_options(p):
+    p.add_argument("--resolution", type=int, help="particles per fibre N (default 20)")
+    p.add_argument("--layout", choices=("lattice-6", "lattice-26", "Delaunay", "k-NN"),
+                   help="spring layout (default lattice-26)")
+    p.add_argument("--iterations", type=int, help="solver iterations per time point (default 500)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="muscle-mss",
@@ -67,6 +176,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", choices=("full", "small"), default="full",
                    help="full: 13 muscles x 64 fibres; small: a quick variant for tests")
     p.set_defaults(func=cmd_demo_scene)
+
+    p = sub.add_parser("demo", help="write the demo scene and run its whole walk")
+    p.add_argument("out", nargs="?", default="demo_out", help="output folder (default demo_out)")
+    p.add_argument("--size", choices=("full", "small"), default="full")
+    _add_run_options(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("run", help="run a scene's motion (or one time point) and write results")
+    p.add_argument("scene", help="scene folder")
+    p.add_argument("out", help="output folder")
+    p.add_argument("--time", type=float, help="only the time point nearest this time (s)")
+    _add_run_options(p)
+    p.set_defaults(func=cmd_run)
     return parser
 
 

@@ -1,0 +1,44 @@
+"""How deep the collision spheres of each object still overlap others after a solve.
+
+A check of the result (DESIGN §7's ``max_penetration_mm`` per muscle), run once per time point,
+not in the solver's loop: the paper's §3.3 response aims at spheres of different objects that
+just touch, so the remaining overlap measures how far a solve is from that.
+"""
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def max_penetration_per_object(centres, radii, owner, n_objects, bone_centres=None,
+                               bone_radii=None) -> np.ndarray:
+    """Deepest overlap (mm; 0 when none) of each object's spheres with spheres of other objects.
+
+    Parameters
+    ----------
+    centres : (n, 3) float64 mm, radii : (n,) float64 mm
+        The muscles' collision spheres (boundary particles).
+    owner : (n,) int, the muscle of each sphere, in ``0 .. n_objects - 1``
+    bone_centres : (k, 3) float64 mm, bone_radii : (k,) float64 mm, optional
+        Bone spheres; they count as objects of their own for every muscle.
+    """
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    owner = np.asarray(owner, dtype=np.int64).reshape(-1)
+    if bone_centres is not None and len(bone_centres):
+        centres_all = np.concatenate([centres, np.asarray(bone_centres, dtype=np.float64)])
+        radii_all = np.concatenate([radii, np.asarray(bone_radii, dtype=np.float64)])
+        owner_all = np.concatenate([owner, np.full(len(bone_centres), -1)])
+    else:
+        centres_all, radii_all, owner_all = centres, radii, owner
+    deepest = np.zeros(n_objects)
+    if len(centres) == 0:
+        return deepest
+    reach = radii + radii_all.max()
+    neighbours = cKDTree(centres_all).query_ball_point(centres, reach)
+    counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(neighbours))
+    i = np.repeat(np.arange(len(centres)), counts)
+    j = np.fromiter((k for n in neighbours for k in n), dtype=np.int64, count=int(counts.sum()))
+    other = owner_all[j] != owner[i]
+    i, j = i[other], j[other]
+    depth = radii[i] + radii_all[j] - np.linalg.norm(centres[i] - centres_all[j], axis=1)
+    np.maximum.at(deepest, owner[i], np.maximum(depth, 0.0))
+    return deepest

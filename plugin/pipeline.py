@@ -1,0 +1,139 @@
+"""Build the whole Muscle MSS pipeline on a scene folder in ParaView (DESIGN §7).
+
+In ParaView's Python shell, pvpython or a ``paraview --script``::
+
+    from muscle_mss.plugin.pipeline import build_pipeline
+    build_pipeline("demo_out/scene")
+
+creates the scene's readers and the six filters wired together, shows bones in white, the deformed
+muscles coloured by displacement and the fibres by strain, and the solver's convergence table in a
+line chart (the paper's figures 5 and 6). File names are kept as given, so a relative scene path
+makes a state file that opens from any checkout (``state_files/``). The plugin is loaded if needed.
+Command line: ``pvpython -m muscle_mss.plugin.pipeline SCENE STATE.pvsm`` saves such a state.
+"""
+import os
+import sys
+
+PLUGIN_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paraview_plugins",
+                           "muscle_mss_plugin.py")
+PIPELINE_NAMES = ("Fibre Resampler", "Spring Builder", "Rigid Pose Transform",
+                  "MSS Collision Solver", "MVC Surface Deformer", "Volume-Error Probe")
+
+
+def load_plugin():
+    """Load the Muscle MSS plugin into this ParaView session unless it is loaded already."""
+    from paraview import simple
+    if not hasattr(simple, "FibreResampler"):
+        simple.LoadPlugin(PLUGIN_FILE, ns=vars(simple))
+
+
+def build_pipeline(scene_folder, show=True, settings=None):
+    """Create readers and filters for ``scene_folder``; return them by name.
+
+    ``settings`` maps property names to values (e.g. ``{"ParticlesPerFibre": 40}``), set on
+    every filter having that property. With ``show`` the results are shown in the active render
+    view and a line chart of the convergence table is added beside it.
+    """
+    from paraview import simple
+    load_plugin()
+    path = lambda name: os.path.join(scene_folder, name)  # noqa: E731  (kept relative if given so)
+    p = {}
+    p["muscles"] = simple.XMLMultiBlockDataReader(registrationName="muscles.vtm",
+                                                  FileName=[path("muscles.vtm")])
+    p["fibres"] = simple.XMLMultiBlockDataReader(registrationName="fibres.vtm",
+                                                 FileName=[path("fibres.vtm")])
+    p["bones"] = simple.XMLMultiBlockDataReader(registrationName="bones.vtm",
+                                                FileName=[path("bones.vtm")])
+    p["motion"] = simple.CSVReader(registrationName="motion.csv", FileName=[path("motion.csv")])
+    p["Fibre Resampler"] = simple.FibreResampler(registrationName="Fibre Resampler",
+                                                 Fibres=p["fibres"])
+    p["Spring Builder"] = simple.SpringBuilder(registrationName="Spring Builder",
+                                               Particles=p["Fibre Resampler"],
+                                               Surfaces=p["muscles"])
+    p["Rigid Pose Transform"] = simple.RigidPoseTransform(
+        registrationName="Rigid Pose Transform", Model=p["Spring Builder"], Bones=p["bones"],
+        Motion=p["motion"], Surfaces=p["muscles"])
+    pose = p["Rigid Pose Transform"]
+    p["MSS Collision Solver"] = simple.MSSCollisionSolver(
+        registrationName="MSS Collision Solver", PosedModel=simple.OutputPort(pose, 0),
+        PosedBones=simple.OutputPort(pose, 1))
+    solver = p["MSS Collision Solver"]
+    p["MVC Surface Deformer"] = simple.MVCSurfaceDeformer(
+        registrationName="MVC Surface Deformer", SolvedModel=simple.OutputPort(solver, 0),
+        RestSurfaces=p["muscles"], RestModel=p["Spring Builder"])
+    p["Volume-Error Probe"] = simple.VolumeErrorProbe(
+        registrationName="Volume-Error Probe",
+        DeformedSurfaces=simple.OutputPort(p["MVC Surface Deformer"], 0),
+        RestSurfaces=p["muscles"])
+    for name, value in (settings or {}).items():
+        owners = [p[n] for n in PIPELINE_NAMES if name in p[n].ListProperties()]
+        if not owners:
+            raise KeyError(f"no Muscle MSS filter has a property {name!r}")
+        for proxy in owners:
+            setattr(proxy, name, value)
+    simple.GetAnimationScene().UpdateAnimationUsingDataTimeSteps()
+    if show:
+        show_pipeline(p)
+    return p
+
+
+def show_pipeline(p):
+    """Displays: posed bones white, deformed muscles by displacement, fibres by strain, and the
+    convergence table in a line chart."""
+    from paraview import simple
+    view = simple.GetActiveViewOrCreate("RenderView")
+    for name in ("muscles", "fibres", "bones", "motion", *PIPELINE_NAMES):
+        simple.Hide(p[name], view)
+    bones = simple.Show(simple.OutputPort(p["Rigid Pose Transform"], 1), view)
+    simple.ColorBy(bones, None)
+    bones.AmbientColor = bones.DiffuseColor = [1.0, 1.0, 1.0]
+    muscles = simple.Show(simple.OutputPort(p["Volume-Error Probe"], 0), view)
+    simple.ColorBy(muscles, ("POINTS", "displacement", "Magnitude"))
+    muscles.RescaleTransferFunctionToDataRange(True, False)
+    muscles.SetScalarBarVisibility(view, True)
+    fibres = simple.Show(simple.OutputPort(p["MVC Surface Deformer"], 1), view)
+    simple.ColorBy(fibres, ("CELLS", "fibre_strain"))
+    fibres.RescaleTransferFunctionToDataRange(True, False)
+    fibres.LineWidth = 2.0
+    simple.Hide(fibres, view)  # inside the muscles; switch on with the eye in the browser
+    view.CameraPosition = [900.0, -1400.0, 300.0]
+    view.CameraFocalPoint = [0.0, 0.0, -250.0]
+    view.CameraViewUp = [0.0, 0.0, 1.0]
+    view.ResetCamera()
+
+    layout = simple.GetLayout(view)
+    chart = simple.CreateView("XYChartView")
+    simple.AssignViewToLayout(view=chart, layout=layout, hint=0)
+    table = simple.Show(simple.OutputPort(p["MSS Collision Solver"], 1), chart)
+    table.UseIndexForXAxis = 0
+    table.XArrayName = "iteration"
+    series = [s for s in table.SeriesVisibility[::2] if s.startswith("mean_displacement_")] \
+        if len(table.SeriesVisibility) else []
+    table.SeriesVisibility = series
+    chart.LeftAxisTitle = "mean displacement (mm)"
+    chart.BottomAxisTitle = "iteration"
+    chart.LeftAxisLogScale = 1
+    simple.SetActiveView(view)
+    return view, chart
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 2:
+        print("usage: pvpython -m muscle_mss.plugin.pipeline SCENE STATE.pvsm", file=sys.stderr)
+        return 2
+    from paraview import simple
+    from muscle_mss.core.motion import farthest_pose_index
+    from muscle_mss.filters.scene_io import load_scene
+    scene, state = argv
+    motion = load_scene(scene).motion
+    build_pipeline(scene)
+    simple.GetAnimationScene().AnimationTime = motion.times[farthest_pose_index(motion)]
+    simple.Render()
+    simple.SaveState(state)
+    print(f"saved {state}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

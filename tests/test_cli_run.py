@@ -1,0 +1,68 @@
+"""`muscle-mss demo` / `muscle-mss run` end to end on the small demo scene (DESIGN §7)."""
+import csv
+
+import numpy as np
+import pytest
+
+from muscle_mss.filters.cli import main
+from muscle_mss.filters.motion_run import SUMMARY_COLUMNS
+
+pytest.importorskip("pyvista")  # the CLI's pictures; ParaView's Python has no pyvista
+
+
+def picture_is_not_blank(path):
+    from PIL import Image
+    pixels = np.asarray(Image.open(path).convert("RGB"), dtype=float)
+    return pixels.std() > 10.0
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", str(out), "--size", "small", "--iterations", "60"]) == 0
+    return out
+
+
+def test_demo_writes_every_promised_file(demo_run, small_scene):
+    out = demo_run
+    for name in ("muscles.vtm", "fibres.vtm", "bones.vtm", "motion.csv", "preview.png"):
+        assert (out / "scene" / name).is_file(), name
+    times = small_scene.motion.times
+    for series in ("surfaces", "fibres", "particles"):
+        text = (out / f"{series}.pvd").read_text()
+        assert text.count("<DataSet ") == len(times)
+        assert len(list((out / "series").glob(f"{series}_*.vtm"))) == len(times)
+    assert len(list((out / "convergence").glob("convergence_*.csv"))) == len(times)
+    for picture in ("convergence.png", "poses.png", "scene/preview.png"):
+        assert picture_is_not_blank(out / picture), picture
+
+
+def test_demo_summary_has_a_row_per_time_and_muscle(demo_run, small_scene):
+    with open(demo_run / "summary.csv", newline="") as f:
+        reader = csv.DictReader(f)
+        assert tuple(reader.fieldnames) == SUMMARY_COLUMNS
+        rows = list(reader)
+    muscles = list(small_scene.muscles)
+    assert len(rows) == len(small_scene.motion.times) * len(muscles)
+    assert [r["muscle"] for r in rows[:len(muscles)]] == muscles
+    for r in rows:
+        values = {k: float(r[k]) for k in SUMMARY_COLUMNS if k != "muscle"}
+        assert all(np.isfinite(v) for v in values.values()), r
+        assert values["iterations"] == 60
+        assert values["rest_volume"] > 0 and values["volume"] > 0
+        assert values["volume_error_pct"] == pytest.approx(
+            100 * abs(values["volume"] - values["rest_volume"]) / values["rest_volume"])
+
+
+def test_run_one_time_point(small_scene_dir, tmp_path, capsys):
+    assert main(["run", str(small_scene_dir), str(tmp_path), "--time", "0.5",
+                 "--iterations", "30", "--layout", "k-NN"]) == 0
+    with open(tmp_path / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert {float(r["time"]) for r in rows} == {0.5}
+    assert "mean over muscles" in capsys.readouterr().out
+
+
+def test_run_refuses_a_broken_scene_with_a_clear_error(tmp_path, capsys):
+    assert main(["run", str(tmp_path), str(tmp_path / "out")]) == 2
+    assert "muscles.vtm: missing" in capsys.readouterr().err
