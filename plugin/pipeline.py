@@ -85,7 +85,7 @@ def show_pipeline(p):
     for name in ("muscles", "fibres", "bones", "motion", *PIPELINE_NAMES):
         simple.Hide(p[name], view)
     bones = simple.Show(simple.OutputPort(p["Rigid Pose Transform"], 1), view)
-    simple.ColorBy(bones, None)
+    bones.ColorArrayName = ["POINTS", ""]  # solid colour (ColorBy(rep, None) fails in 5.11)
     bones.AmbientColor = bones.DiffuseColor = [1.0, 1.0, 1.0]
     muscles = simple.Show(simple.OutputPort(p["Volume-Error Probe"], 0), view)
     simple.ColorBy(muscles, ("POINTS", "displacement", "Magnitude"))

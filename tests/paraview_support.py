@@ -30,9 +30,9 @@ def paraview_env(**extra) -> dict:
     return env
 
 
-def run(command, timeout=600, **extra_env) -> subprocess.CompletedProcess:
+def run(command, timeout=600, cwd=REPO, **extra_env) -> subprocess.CompletedProcess:
     """Run a ParaView command line; fail with its output when it exits non-zero."""
-    proc = subprocess.run([str(c) for c in command], cwd=REPO, env=paraview_env(**extra_env),
+    proc = subprocess.run([str(c) for c in command], cwd=cwd, env=paraview_env(**extra_env),
                           capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(map(str, command))} exited {proc.returncode}\n"
@@ -41,10 +41,13 @@ def run(command, timeout=600, **extra_env) -> subprocess.CompletedProcess:
     return proc
 
 
-def run_script(tool, script, *args, timeout=600, **extra_env) -> dict:
-    """Run ``tests/paraview_scripts/<script>`` with ``tool`` (e.g. ``pvpython``); the script
-    prints one line ``RESULT <json>``, which is returned."""
-    proc = run([tool, SCRIPTS / script, *args], timeout=timeout, **extra_env)
+def run_script(*command, timeout=600, cwd=REPO, **extra_env) -> dict:
+    """Run ``tests/paraview_scripts/<script>`` with a tool (``run_script("pvpython", "x.py",
+    *args)``, or ``"xvfb-run", "-a", "pvpython", "x.py", …``); the script prints one line
+    ``RESULT <json>``, which is returned."""
+    script = next(c for c in command if str(c).endswith(".py"))
+    command = [SCRIPTS / c if c == script else c for c in command]
+    proc = run(command, timeout=timeout, cwd=cwd, **extra_env)
     for line in reversed(proc.stdout.splitlines()):
         if line.startswith("RESULT "):
             return json.loads(line[len("RESULT "):])

@@ -5,7 +5,7 @@ Each test starts ParaView's own executables with this checkout on PYTHONPATH thr
 """
 import pytest
 
-from paraview_support import run_script
+from paraview_support import SCRIPTS, run_script
 
 pytestmark = pytest.mark.paraview
 
@@ -20,3 +20,92 @@ def test_pvpython_reads_demo_scene_with_its_own_readers(small_scene, small_scene
     assert result["motion_columns"][:3] == ["time", "bone", "m00"]
     assert result["problems"] == []
     assert result["time_points"] == len(small_scene.motion.times)
+
+
+ITERATIONS = "60"  # enough to exercise the solver; the numbers only need to agree
+
+
+@pytest.fixture(scope="module")
+def venv_chain(small_scene_dir):
+    from muscle_mss.filters import motion_run
+    return motion_run.build_pipeline(small_scene_dir, {"Iterations": int(ITERATIONS)})
+
+
+def test_plugin_builder_gives_the_venv_chain_numbers_and_time_moves_the_pose(
+        small_scene, small_scene_dir, venv_chain, tmp_path):
+    import numpy as np
+    from muscle_mss.filters import vtk_arrays as V
+    from muscle_mss.filters.motion_run import update_at
+
+    times = small_scene.motion.times
+    t0, t1 = float(times[0]), float(times[len(times) * 3 // 4])
+    npz = tmp_path / "pv.npz"
+    result = run_script("pvpython", "pipeline_numbers.py", small_scene_dir, npz, t0, t1)
+    assert result["filters"] == ["FibreResampler", "MSSCollisionSolver", "MVCSurfaceDeformer",
+                                 "RigidPoseTransform", "SpringBuilder", "VolumeErrorProbe"]
+    np.testing.assert_allclose(result["timesteps"], times, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(result["keeper"], times, rtol=0, atol=1e-12)
+    pv = np.load(npz)
+    for k, t in enumerate((t0, t1)):
+        surfaces = update_at(venv_chain.probe, 0, t)
+        for name, block in V.blocks(surfaces):
+            np.testing.assert_allclose(pv[f"surfaces/{k}/{name}"], V.points_of(block),
+                                       rtol=0, atol=1e-9, err_msg=f"{name} at t={t}")
+    moved = [np.abs(pv[f"bones/1/{b}"] - pv[f"bones/0/{b}"]).max() for b in small_scene.bones]
+    assert max(moved) > 10.0  # mm: the femur and tibia swing between the two times
+
+
+def test_state_file_reloads_to_the_same_numbers(small_scene, small_scene_dir, tmp_path):
+    import shutil
+    work = tmp_path / "review"
+    shutil.copytree(small_scene_dir, work / "data")
+    saved = run_script("xvfb-run", "-a", "pvpython", "save_state.py", "data", "review.pvsm",
+                       float(small_scene.motion.times[15]), cwd=work)
+    moved = tmp_path / "elsewhere"
+    shutil.move(str(work), str(moved))  # every path stored in the state is now dead
+    loaded = run_script("xvfb-run", "-a", "pvpython", "load_state.py",
+                        moved / "review.pvsm", moved / "data")
+    assert loaded["muscle"] == saved["muscle"] == list(small_scene.muscles) + ["mean"]
+    assert loaded["volume"] == saved["volume"]
+    assert loaded["iterations"] == int(ITERATIONS)
+    assert loaded["time"] == pytest.approx(float(small_scene.motion.times[15]))
+
+
+def test_gui_opens_the_state_and_shows_the_muscles(small_scene, small_scene_dir, tmp_path):
+    import numpy as np
+    from PIL import Image
+    from paraview_support import run
+
+    work = tmp_path / "gui"
+    import shutil
+    shutil.copytree(small_scene_dir, work / "data")
+    run_script("xvfb-run", "-a", "pvpython", "save_state.py", "data", "review.pvsm",
+               float(small_scene.motion.times[15]), cwd=work)
+    shot = tmp_path / "gui.png"
+    run(["xvfb-run", "-a", "-s", "-screen 0 1280x1024x24", "paraview", "--dr",
+         f"--script={SCRIPTS / 'gui_screenshot.py'}", "--exit"],
+        MUSCLE_MSS_STATE=work / "review.pvsm", MUSCLE_MSS_DATA=work / "data",
+        MUSCLE_MSS_SCREENSHOT=shot)
+    pixels = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
+    background = np.median(pixels.reshape(-1, 3), axis=0)
+    differs = np.abs(pixels - background).sum(axis=2) > 30
+    assert pixels.std() > 10.0 and differs.mean() > 0.02, "the view looks blank"
+
+
+def test_mpi_batch_equals_the_serial_batch(small_scene_dir, tmp_path):
+    import csv
+    from paraview_support import run
+
+    serial, parallel = tmp_path / "serial", tmp_path / "mpi"
+    options = ["--iterations", ITERATIONS]
+    run(["pvpython", "-m", "muscle_mss.plugin.batch", small_scene_dir, serial, *options])
+    run(["mpiexec", "--allow-run-as-root", "--oversubscribe", "-n", "2", "pvbatch", "--sym",
+         "-m", "muscle_mss.plugin.batch", small_scene_dir, parallel, *options])
+
+    def table(folder):
+        with open(folder / "summary.csv", newline="") as f:
+            return [{k: v for k, v in row.items() if k != "seconds"} for row in csv.DictReader(f)]
+    assert table(serial) == table(parallel)
+    assert len(table(serial)) > 0
+    for name in ("surfaces.pvd", "fibres.pvd", "particles.pvd"):
+        assert (serial / name).read_text() == (parallel / name).read_text()
