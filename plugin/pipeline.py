@@ -49,7 +49,7 @@ def build_pipeline(scene_folder, show=True, settings=None):
                                                  Fibres=p["fibres"])
     p["Spring Builder"] = simple.SpringBuilder(registrationName="Spring Builder",
                                                Particles=p["Fibre Resampler"],
-                                               Surfaces=p["muscles"])
+                                               Surfaces=p["muscles"], Bones=p["bones"])
     p["Rigid Pose Transform"] = simple.RigidPoseTransform(
         registrationName="Rigid Pose Transform", Model=p["Spring Builder"], Bones=p["bones"],
         Motion=p["motion"], Surfaces=p["muscles"])
@@ -82,8 +82,6 @@ def show_pipeline(p):
     convergence table in a line chart."""
     from paraview import simple
     view = simple.GetActiveViewOrCreate("RenderView")
-    for name in ("muscles", "fibres", "bones", "motion", *PIPELINE_NAMES):
-        simple.Hide(p[name], view)
     bones = simple.Show(simple.OutputPort(p["Rigid Pose Transform"], 1), view)
     bones.ColorArrayName = ["POINTS", ""]  # solid colour (ColorBy(rep, None) fails in 5.11)
     bones.AmbientColor = bones.DiffuseColor = [1.0, 1.0, 1.0]

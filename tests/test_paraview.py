@@ -109,3 +109,17 @@ def test_mpi_batch_equals_the_serial_batch(small_scene_dir, tmp_path):
     assert len(table(serial)) > 0
     for name in ("surfaces.pvd", "fibres.pvd", "particles.pvd"):
         assert (serial / name).read_text() == (parallel / name).read_text()
+
+
+def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
+    from muscle_mss.core.demo_scene import MUSCLE_NAMES, demo_scene
+    from muscle_mss.core.motion import farthest_pose_index
+    from muscle_mss.filters.scene_io import write_scene
+
+    scene = demo_scene("full")
+    write_scene(scene, tmp_path / "demo_out" / "scene")  # where ./demo.sh puts it
+    state = SCRIPTS.parents[1] / "state_files" / "demo_walk.pvsm"
+    loaded = run_script("xvfb-run", "-a", "pvpython", "load_state.py", state, tmp_path)
+    assert loaded["muscle"] == list(MUSCLE_NAMES) + ["mean"]
+    assert all(v > 0 for v in loaded["volume"])
+    assert loaded["time"] == pytest.approx(scene.motion.times[farthest_pose_index(scene.motion)])
