@@ -8,8 +8,15 @@ length ``L0`` (mm), stiffness ``k`` (g/s^2) and damping ``c`` (g/s), ``d = x_b -
 
     f_a = (k (L - L0) + c (v_b - v_a) . d / L) d / L        and  f_b = -f_a
 
-(force unit g mm/s^2). :func:`mss_steps` advances the system by semi-implicit Euler,
-``v += dt f / m``, ``x += dt v``; fixed particles (tendon attachments) never move.
+(force unit g mm/s^2). Two terms beyond the paper's springs make the relaxation a convergent,
+volume-keeping quasi-static solve (:func:`mss_steps`): a viscous drag on every particle's
+velocity, integrated implicitly so that it is stable at any strength (the damping along the
+springs is explicit and bounded by ``c dt n / m < 2`` for ``n`` springs per particle, far below
+what converging needs), and the pressure of each muscle's closed cage (the MVC cage of
+:mod:`muscle_mss.core.cage`) against a change of its volume: muscle is nearly incompressible,
+while a spring lattice with long cells narrows several times faster than it stretches. The step
+is semi-implicit Euler, ``v = (v + dt f / m) / (1 + dt drag)``, ``x += dt v``; fixed particles
+(tendon attachments) never move.
 
 Speed. Springs are grouped into *runs*: springs of one muscle with the same index offset
 ``d = b - a`` and the same stiffness and damping. A run whose springs cover at least half of
@@ -153,6 +160,31 @@ def spring_layout(springs, rest_length, stiffness, damping, muscle_offsets) -> S
         np.searchsorted(muscle[sparse], np.arange(n_muscles + 1)).astype(np.int64))
 
 
+@dataclass
+class VolumeCages:
+    """The closed cage of each muscle for the volume force (:func:`mss_steps`).
+
+    ``triangles`` (T, 3) int64 global particle indices, outward in the rest pose; ``ptr``
+    (M+1,) int64: muscle ``m``'s triangles are ``[ptr[m], ptr[m+1])`` (none: no volume force
+    on that muscle); ``rest_volume`` (M,) float64 mm^3, positive where the muscle has a cage.
+    """
+
+    ptr: np.ndarray
+    triangles: np.ndarray
+    rest_volume: np.ndarray
+
+    @property
+    def arrays(self) -> tuple:
+        """The arrays in the order the kernels take them."""
+        return self.ptr, self.triangles, self.rest_volume
+
+
+def no_cages(n_muscles: int) -> VolumeCages:
+    """No muscle has a cage: no volume force."""
+    return VolumeCages(np.zeros(n_muscles + 1, dtype=np.int64), np.zeros((0, 3), np.int64),
+                       np.ones(n_muscles))
+
+
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
 def _spring_factor(dx, dy, dz, dvx, dvy, dvz, rest, k, c):
     """Force on the spring's first end divided by ``d``: (k (L - L0) + c dv.d / L) / L; zero for
@@ -225,23 +257,51 @@ def _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param
         f2[b] -= f * dz
 
 
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus):
+    """Add the pressure force of muscle ``m``'s cage to ``force`` (see :func:`mss_steps`)."""
+    first, stop = cage_ptr[m], cage_ptr[m + 1]
+    if stop == first or bulk_modulus == 0.0:
+        return
+    volume = 0.0
+    for t in range(first, stop):
+        a, b, c = cage_triangles[t, 0], cage_triangles[t, 1], cage_triangles[t, 2]
+        volume += (x[0, a] * (x[1, b] * x[2, c] - x[2, b] * x[1, c])
+                   + x[1, a] * (x[2, b] * x[0, c] - x[0, b] * x[2, c])
+                   + x[2, a] * (x[0, b] * x[1, c] - x[1, b] * x[0, c]))
+    # the gradient of volume = sum a.(b x c) / 6 with respect to a is (b x c) / 6
+    pressure = -bulk_modulus * (volume / (6.0 * rest_volume[m]) - 1.0) / 6.0
+    for t in range(first, stop):
+        for k in range(3):
+            a = cage_triangles[t, k]
+            b = cage_triangles[t, (k + 1) % 3]
+            c = cage_triangles[t, (k + 2) % 3]
+            force[0, a] += pressure * (x[1, b] * x[2, c] - x[2, b] * x[1, c])
+            force[1, a] += pressure * (x[2, b] * x[0, c] - x[0, b] * x[2, c])
+            force[2, a] += pressure * (x[0, b] * x[1, c] - x[1, b] * x[0, c])
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def mss_step(x, v, x_prev, force, scratch, inv_mass, dt, muscle_offsets, runs_int, runs_param,
-             lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr):
+def mss_step(x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
+             cage_triangles, rest_volume, muscle_offsets, runs_int, runs_param, lane_rest,
+             run_ptr, scattered_int, scattered_param, scattered_ptr):
     """One semi-implicit Euler step of every muscle, in place.
 
     x, v (3, n) float64 mm, mm/s; x_prev (3, n) receives x before the step; force, scratch
     (3, n) work arrays; inv_mass (n,) 1/g, 0 for fixed particles (so they never move);
-    dt s; the rest as :class:`SpringLayout`.
+    dt s; drag 1/s, bulk_modulus g/(mm s^2) and the cages (:class:`VolumeCages`) as in
+    :func:`mss_steps`; the rest as :class:`SpringLayout`.
     """
+    keep = 1.0 / (1.0 + dt * drag)
     for m in prange(muscle_offsets.shape[0] - 1):
         _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param,
                        lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+        _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus)
         for p in range(muscle_offsets[m], muscle_offsets[m + 1]):
             h = dt * inv_mass[p]
             for axis in range(3):
                 x_prev[axis, p] = x[axis, p]
-                v[axis, p] += h * force[axis, p]
+                v[axis, p] = (v[axis, p] + h * force[axis, p]) * keep
                 x[axis, p] += dt * v[axis, p]
 
 
@@ -275,9 +335,17 @@ def spring_forces(positions, velocities, layout: SpringLayout, muscle_offsets) -
 
 
 def mss_steps(positions, velocities, masses, fixed, layout: SpringLayout, muscle_offsets,
-              dt: float, steps: int):
+              dt: float, steps: int, drag: float = 0.0, bulk_modulus: float = 0.0,
+              cages: VolumeCages | None = None):
     """Advance the mass-spring system ``steps`` semi-implicit Euler steps of ``dt`` s without
-    collisions; returns new ``(positions, velocities)`` (n, 3). masses (n,) g, fixed (n,) bool."""
+    collisions; returns new ``(positions, velocities)`` (n, 3). masses (n,) g, fixed (n,) bool.
+
+    ``drag`` (1/s) is a viscous drag on every particle's velocity, force ``-drag m v``, taken
+    implicitly (``v <- (v + dt f / m) / (1 + dt drag)``) so that it is stable at any strength.
+    ``bulk_modulus`` (g/(mm s^2), a pressure) with ``cages`` adds the pressure of each muscle's
+    closed cage, ``p = -bulk_modulus (V / V_rest - 1)``, as the force ``p dV/dx`` on its
+    vertices (the gradient of the energy ``bulk_modulus V_rest (V / V_rest - 1)^2 / 2``).
+    """
     offsets = np.asarray(muscle_offsets, dtype=np.int64)
     n = int(offsets[-1])
     x = _soa(positions, n, "positions")
@@ -285,8 +353,10 @@ def mss_steps(positions, velocities, masses, fixed, layout: SpringLayout, muscle
     inv_mass = np.where(np.asarray(fixed, dtype=bool), 0.0, 1.0 / np.asarray(masses, float))
     v[:, inv_mass == 0.0] = 0.0
     work = np.zeros((3, 3, n))
+    cages = cages if cages is not None else no_cages(len(offsets) - 1)
     for _ in range(int(steps)):
-        mss_step(x, v, work[0], work[1], work[2], inv_mass, float(dt), offsets, *layout.arrays)
+        mss_step(x, v, work[0], work[1], work[2], inv_mass, float(dt), float(drag),
+                 float(bulk_modulus), *cages.arrays, offsets, *layout.arrays)
     return x.T.copy(), v.T.copy()
 
 

@@ -3,7 +3,8 @@
 Each iteration:
 
 1. mass-spring update (:func:`muscle_mss.core.mss.mss_step`: Hooke + damping along the spring,
-   semi-implicit Euler, fixed particles stay);
+   a viscous drag on the velocities and the pressure of each muscle's cage against a change of
+   its rest volume, semi-implicit Euler, fixed particles stay);
 2. collision detection among the boundary spheres of different muscles and between muscle
    spheres and bone spheres, through the chosen structure (:mod:`~muscle_mss.core.spatial_hash`,
    the default, or the paper's :mod:`~muscle_mss.core.octree_bvh`); both find the same pairs;
@@ -36,7 +37,10 @@ from numba import njit, prange
 
 from . import octree_bvh, spatial_hash
 from .errors import MuscleMSSError
-from .mss import Spheres, lattice_order, make_spheres, mss_step, now, spring_layout
+from .cage import muscle_cage
+from .mss import (Spheres, VolumeCages, lattice_order, make_spheres, mss_step, now,
+                  spring_layout)
+from .volume import signed_volume
 
 # OpenMP threads that spin while waiting starve the working thread when the cores are shared
 # (other processes, the ParaView GUI): a solve of the small demo took 24 s instead of 2 s on a
@@ -49,6 +53,14 @@ STRUCTURES = ("spatial hash", "octree BVH")
 # lattice-26: a particle's stiffest mode is below sqrt(2 * 26 * k / m) ~ 23 rad/s, and
 # symplectic Euler needs omega * dt < 2; 0.05 s gives 1.1 in that worst case.
 DEFAULT_TIME_STEP = 0.05
+# Measured on the small and full demo at the pose farthest from rest (issue 5): without drag
+# the lattices ring for the whole solve (damping ratio c / (2 sqrt(k m)) = 0.08 per spring) and
+# fold; 5 1/s damps the slow modes of a 20-particle fibre within ~100 iterations.
+DEFAULT_DRAG = 5.0
+# Without a volume force the converged lattices lose 9-22 % of their volume where the posed
+# fibres are stretched ~10 % (lattice-26 cells 2.5 times longer than wide narrow several
+# times faster than they stretch); 5 g/(mm s^2) keeps the cage volumes within ~3 %.
+DEFAULT_BULK_MODULUS = 5.0
 CHUNK_SECONDS = 0.1
 
 RUNNING, CONVERGED, OUT_OF_TIME, DIVERGED = range(4)
@@ -60,9 +72,10 @@ class MSSModel:
 
     ``names`` the muscles; ``offsets`` (M+1,) their particle ranges; ``positions`` (n, 3) mm
     posed; ``fixed``, ``boundary`` (n,) bool; ``mass`` (n,) g; ``radius`` (n,) mm;
-    ``fibre_id``, ``fibre_index`` (n,) int and optional ``fibre_grid`` (n, 2) (only to order the
-    particles for speed); ``springs`` (S, 2) int global particle indices; ``rest_length`` mm,
-    ``stiffness`` g/s^2, ``damping`` g/s (S,).
+    ``fibre_id``, ``fibre_index`` (n,) int and optional ``fibre_grid`` (n, 2) (to order the
+    particles for speed, and for the cages); ``springs`` (S, 2) int global particle indices;
+    ``rest_length`` mm, ``stiffness`` g/s^2, ``damping`` g/s (S,); ``rest_positions`` (n, 3) mm,
+    the rest pose whose cage volumes the volume force keeps (omitted: ``positions``).
     """
 
     names: list
@@ -79,6 +92,7 @@ class MSSModel:
     stiffness: np.ndarray
     damping: np.ndarray
     fibre_grid: np.ndarray | None = None
+    rest_positions: np.ndarray | None = None
 
 
 @dataclass
@@ -90,6 +104,8 @@ class SolverSettings:
     displacement_threshold: float = 1e-3    # mm per iteration
     time_budget: float = 1.0                # s
     time_step: float = DEFAULT_TIME_STEP    # s
+    drag: float = DEFAULT_DRAG              # 1/s
+    bulk_modulus: float = DEFAULT_BULK_MODULUS  # g/(mm s^2)
     structure: str = "spatial hash"
     bvh_max_depth: int = octree_bvh.MAX_DEPTH
     bvh_min_primitives: int = octree_bvh.MIN_PRIMITIVES
@@ -136,6 +152,7 @@ class PreparedModel:
     order: np.ndarray
     offsets: np.ndarray
     layout: object
+    cages: VolumeCages
     inv_mass: np.ndarray
     radius: np.ndarray
     muscle: np.ndarray
@@ -160,9 +177,36 @@ def prepare(model: MSSModel) -> PreparedModel:
     fixed = np.asarray(model.fixed, dtype=bool)[order]
     inv_mass = np.where(fixed, 0.0, 1.0 / np.asarray(model.mass, dtype=np.float64)[order])
     muscle = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
-    return PreparedModel(order, offsets, layout, inv_mass,
+    return PreparedModel(order, offsets, layout, _cages(model, rank), inv_mass,
                          np.asarray(model.radius, dtype=np.float64)[order], muscle, fixed,
                          np.asarray(model.boundary, dtype=bool)[order])
+
+
+def _cages(model: MSSModel, rank) -> VolumeCages:
+    """Each muscle's MVC cage (:func:`muscle_mss.core.cage.muscle_cage`) in the solver's particle
+    order, with its rest volume. A muscle whose boundary particles span no solid (a sheet, a
+    line: no volume to keep) gets no cage."""
+    offsets = np.asarray(model.offsets, dtype=np.int64)
+    rest = np.asarray(model.positions if model.rest_positions is None else model.rest_positions,
+                      dtype=np.float64).reshape(-1, 3)
+    triangles, counts, volumes = [], [], []
+    for m, name in enumerate(model.names):
+        lo, hi = offsets[m], offsets[m + 1]
+        grid = None if model.fibre_grid is None else model.fibre_grid[lo:hi]
+        try:
+            cage = muscle_cage(rest[lo:hi], model.boundary[lo:hi], model.fibre_id[lo:hi],
+                               model.fibre_index[lo:hi], grid, where=f"muscle '{name}'")
+        except MuscleMSSError:
+            counts.append(0)
+            volumes.append(1.0)
+            continue
+        corners = lo + cage.vertices
+        triangles.append(rank[corners[cage.triangles]])
+        counts.append(len(cage.triangles))
+        volumes.append(signed_volume(rest[corners], cage.triangles))
+    ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return VolumeCages(ptr, np.concatenate(triangles).astype(np.int64) if triangles
+                       else np.zeros((0, 3), np.int64), np.asarray(volumes, dtype=np.float64))
 
 
 # ---- the kernel ------------------------------------------------------------------------------
@@ -224,8 +268,9 @@ def _apply(x, v, x_prev, particle, disp, collided, offsets, mean_disp):
 
 @njit(cache=True, parallel=True)
 def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, started):
-    (x, v, x_prev, force, scratch, inv_mass, offsets, runs_int, runs_param, lane_rest, run_ptr,
-     scattered_int, scattered_param, scattered_ptr) = mss
+    (x, v, x_prev, force, scratch, inv_mass, cage_ptr, cage_triangles, rest_volume, offsets,
+     runs_int, runs_param, lane_rest, run_ptr, scattered_int, scattered_param,
+     scattered_ptr) = mss
     (particle, radius, muscle, fixed, moves, centres, disp, collided, pair_count,
      pair_pen, far) = spheres
     (bone_centres, bone_radius, bone_object, bone_moves, bone_table, muscle_cell, skin,
@@ -235,7 +280,8 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
      node_stamp, stack, state, best_pen, best_dir, best_partner, touched, n_muscles, max_depth,
      min_primitives, no_pairs, n_pairs) = bvh
     mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
-    (dt, use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit) = control
+    (dt, drag, bulk_modulus, use_bvh, muscle_muscle, muscle_bone, termination, threshold,
+     budget, limit) = control
     ns = particle.shape[0]
     status = RUNNING
     bad = -1
@@ -243,8 +289,9 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
     it = first
     while it < last and status == RUNNING:
         t0 = now()
-        mss_step(x, v, x_prev, force, scratch, inv_mass, dt, offsets, runs_int, runs_param,
-                 lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+        mss_step(x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
+                 cage_triangles, rest_volume, offsets, runs_int, runs_param, lane_rest, run_ptr,
+                 scattered_int, scattered_param, scattered_ptr)
         t1 = now()
         _gather(x, particle, centres, disp, collided)
         mm_count = 0
@@ -341,8 +388,11 @@ def _check_settings(settings: SolverSettings) -> None:
                         ("BVH min primitives", settings.bvh_min_primitives)):
         if not value > 0:
             raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
-    if not settings.displacement_threshold >= 0.0 or not settings.time_budget >= 0.0:
-        raise MuscleMSSError("solver displacement threshold and time budget must be 0 or more")
+    for name, value in (("displacement threshold", settings.displacement_threshold),
+                        ("time budget", settings.time_budget), ("drag", settings.drag),
+                        ("bulk modulus", settings.bulk_modulus)):
+        if not (value >= 0.0 and np.isfinite(value)):
+            raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
 
 
 def _divergence_limits(positions, offsets, reach) -> np.ndarray:
@@ -376,7 +426,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     x = np.ascontiguousarray(posed.T)
     v = np.zeros_like(x)
     work = np.zeros((3, 3, n))
-    mss = (x, v, work[0], work[1], work[2], prep.inv_mass, offsets) + prep.layout.arrays
+    mss = ((x, v, work[0], work[1], work[2], prep.inv_mass) + prep.cages.arrays + (offsets,)
+           + prep.layout.arrays)
 
     if bone_centres is None:
         bone_centres, bone_radius, bone_id = np.zeros((0, 3)), np.zeros(0), np.zeros(0, int)
@@ -394,7 +445,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     cap = int(settings.iterations)
     history = (np.zeros((cap, n_muscles)), np.zeros(cap, dtype=np.int64),
                np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap), np.zeros(3))
-    control = (float(settings.time_step), settings.structure == "octree BVH",
+    control = (float(settings.time_step), float(settings.drag), float(settings.bulk_modulus),
+               settings.structure == "octree BVH",
                bool(settings.muscle_muscle), bool(settings.muscle_bone),
                TERMINATIONS.index(settings.termination), float(settings.displacement_threshold),
                float(settings.time_budget),

@@ -57,6 +57,10 @@ def _muscle_block(name, block):
         bad = int(np.flatnonzero(sizes != 2)[0])
         raise MuscleMSSError(f"{where}: line cell {bad} has {int(sizes[bad])} points; springs "
                              "must be two-point lines")
+    rest = data[A.REST_POSITION].reshape(n, -1)
+    if rest.shape[1] != 3 or not np.isfinite(rest).all():
+        raise MuscleMSSError(f"{where}: array '{A.REST_POSITION}' must have 3 finite components "
+                             "per particle")
     springs = connectivity.reshape(-1, 2)
     cells = {key: V.cell_array(block, key, where) for key in CELL_ARRAYS}
     for key in (A.FIBRE_ID, A.FIBRE_INDEX, A.FIXED, A.BOUNDARY, A.RADIUS, A.MASS):
@@ -109,7 +113,8 @@ class MSSCollisionSolver(MuscleFilter):
 
     LABEL = "MSS Collision Solver"
     HELP = ("Relaxes the posed mass-spring model of every muscle (Hooke springs with damping, "
-            "semi-implicit Euler, fixed tendon particles stay) while pushing the boundary "
+            "a viscous drag, each muscle's resistance to a change of its volume, semi-implicit "
+            "Euler, fixed tendon particles stay) while pushing the boundary "
             "particles' spheres out of other muscles' spheres and out of the bones (sampled into "
             "spheres on their surface). Outputs the solved model (velocity, displacement, "
             "collided added) and a table of the mean displacement of each muscle, the colliding "
@@ -148,6 +153,19 @@ class MSSCollisionSolver(MuscleFilter):
                  "lighter particles (stability needs about dt < 2 sqrt(m / (2 n k)) for n "
                  "springs per particle).",
                  minimum=1e-9, group="Integration"),
+        Property("Drag", "double", S.DEFAULT_DRAG,
+                 "Viscous drag on every particle's velocity (1/s): the force -Drag m v, taken "
+                 "implicitly so that it is stable at any strength. It makes the relaxation settle "
+                 "(the springs' own damping is explicit and must stay small to be stable); 0 "
+                 "turns it off (the paper's plain mass-spring system).",
+                 minimum=0.0, group="Integration"),
+        Property("BulkModulus", "double", S.DEFAULT_BULK_MODULUS,
+                 "Resistance of each muscle to a change of its volume (g/(mm s^2), a pressure): "
+                 "the boundary particles' cage (the one that carries the surface) is pushed "
+                 "outwards by -BulkModulus (V / V_rest - 1) per unit of its area. Muscle is "
+                 "nearly incompressible, a spring lattice is not: without it a stretched lattice "
+                 "narrows and loses volume. 0 turns it off (the paper's springs only).",
+                 minimum=0.0, group="Integration"),
         Property("CollisionStructure", "enum", "spatial hash",
                  "How colliding spheres are found. spatial hash: a uniform grid with candidate "
                  "lists, parallel (the fast default). octree BVH: the paper's per-object octree "
@@ -184,6 +202,7 @@ class MSSCollisionSolver(MuscleFilter):
             termination=self.choice("Termination"), iterations=self.value("Iterations"),
             displacement_threshold=self.value("DisplacementThreshold"),
             time_budget=self.value("TimeBudget"), time_step=self.value("TimeStep"),
+            drag=self.value("Drag"), bulk_modulus=self.value("BulkModulus"),
             structure=self.choice("CollisionStructure"),
             bvh_max_depth=self.value("BVHMaxDepth"),
             bvh_min_primitives=self.value("BVHMinPrimitives"),
@@ -234,7 +253,8 @@ class MSSCollisionSolver(MuscleFilter):
                           cat(A.MASS, np.float64), cat(A.BOUNDARY) != 0,
                           cat(A.RADIUS, np.float64), cat(A.FIBRE_ID, np.int64),
                           cat(A.FIBRE_INDEX, np.int64), springs, cat(A.REST_LENGTH, np.float64),
-                          cat(A.STIFFNESS, np.float64), cat(A.DAMPING, np.float64), grid)
+                          cat(A.STIFFNESS, np.float64), cat(A.DAMPING, np.float64), grid,
+                          np.concatenate([p[A.REST_POSITION].reshape(-1, 3) for p in parts]))
 
     def _prepare(self, model: S.MSSModel) -> S.PreparedModel:
         """The particle order and spring layout, reused while the model's topology and spring
@@ -242,7 +262,7 @@ class MSSCollisionSolver(MuscleFilter):
         digest = hashlib.sha1()
         for array in (model.offsets, model.springs, model.rest_length, model.stiffness,
                       model.damping, model.fixed, model.mass, model.boundary, model.radius,
-                      model.fibre_id, model.fibre_index):
+                      model.fibre_id, model.fibre_index, model.rest_positions):
             digest.update(np.ascontiguousarray(array).tobytes())
         if model.fibre_grid is not None:
             digest.update(np.ascontiguousarray(model.fibre_grid).tobytes())

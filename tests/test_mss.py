@@ -130,3 +130,93 @@ def test_wrong_row_count_is_refused():
     layout = mss.spring_layout([[0, 1]], [1.0], [10.0], [0.5], [0, 2])
     with pytest.raises(mss.MuscleMSSError, match="rows"):
         mss.spring_forces(np.zeros((3, 3)), np.zeros((2, 3)), layout, [0, 2])
+
+
+def cube_cage(size=2.0):
+    """A cube's 8 corners and its 12 outward triangles."""
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float) * size
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    triangles = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    return corners, triangles
+
+
+def cage_volume(x, triangles):
+    return np.einsum("ij,ij", x[triangles[:, 0]],
+                     np.cross(x[triangles[:, 1]], x[triangles[:, 2]])) / 6.0
+
+
+def test_drag_slows_every_velocity_by_the_implicit_factor_and_is_stable_at_any_strength():
+    pts = np.array([[0.0, 0, 0], [5.0, 0, 0]])
+    layout = mss.spring_layout(np.zeros((0, 2)), [], [], [], [0, 2])
+    v0 = np.array([[1.0, -2.0, 0.5], [0.0, 3.0, 0.0]])
+    for drag in (0.0, 2.0, 1e9):
+        x, v = mss.mss_steps(pts, v0, np.ones(2), np.zeros(2, bool), layout, [0, 2], 0.05, 3,
+                             drag=drag)
+        keep = 1.0 / (1.0 + 0.05 * drag)
+        np.testing.assert_allclose(v, v0 * keep ** 3, rtol=1e-12, atol=1e-300)
+        np.testing.assert_allclose(x, pts + 0.05 * v0 * (keep + keep ** 2 + keep ** 3),
+                                   rtol=1e-12)
+
+
+def test_drag_beyond_the_explicit_damping_limit_still_relaxes_a_stretched_lattice():
+    pts, springs, rest = lattice(3, 3, 6)
+    stretched = pts.mean(axis=0) + 1.2 * (pts - pts.mean(axis=0))
+    layout = mss.spring_layout(springs, rest, np.full(len(rest), 10.0),
+                               np.full(len(rest), 0.5), [0, len(pts)])
+    # the same strength as damping along the springs breaks c dt n / m < 2 (n = 26): it diverges
+    explicit = mss.spring_layout(springs, rest, np.full(len(rest), 10.0),
+                                 np.full(len(rest), 50.0), [0, len(pts)])
+    with np.errstate(all="ignore"):
+        x, _ = mss.mss_steps(stretched, np.zeros_like(pts), np.ones(len(pts)),
+                             np.zeros(len(pts), bool), explicit, [0, len(pts)], 0.05, 100)
+    assert not (np.abs(x - pts) < 1e3).all()
+    x, v = mss.mss_steps(stretched, np.zeros_like(pts), np.ones(len(pts)),
+                         np.zeros(len(pts), bool), layout, [0, len(pts)], 0.05, 2000, drag=50.0)
+    after = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
+    assert np.abs(after / rest - 1).max() < 1e-3
+    assert np.abs(v).max() < 1e-3
+
+
+def test_volume_force_is_minus_the_gradient_of_the_volume_energy():
+    corners, triangles = cube_cage()
+    rng = np.random.default_rng(3)
+    x = corners * 0.9 + rng.normal(scale=0.05, size=corners.shape)
+    rest_volume = cage_volume(corners, triangles)
+    bulk = 7.0
+    cages = mss.VolumeCages(np.array([0, 12]), triangles, np.array([rest_volume]))
+    layout = mss.spring_layout(np.zeros((0, 2)), [], [], [], [0, 8])
+    dt = 1e-3
+    _, v = mss.mss_steps(x, np.zeros_like(x), np.ones(8), np.zeros(8, bool), layout, [0, 8], dt, 1,
+                         bulk_modulus=bulk, cages=cages)
+
+    def energy(y):
+        return 0.5 * bulk * rest_volume * (cage_volume(y, triangles) / rest_volume - 1.0) ** 2
+
+    gradient = np.zeros_like(x)
+    for i in range(8):
+        for axis in range(3):
+            step = np.zeros_like(x)
+            step[i, axis] = 1e-6
+            gradient[i, axis] = (energy(x + step) - energy(x - step)) / 2e-6
+    np.testing.assert_allclose(v / dt, -gradient, rtol=1e-6, atol=1e-9)
+    assert (np.einsum("ij,ij->i", v, x - x.mean(axis=0)) > 0).all()   # a shrunk cage swells
+
+
+def test_volume_force_is_zero_at_rest_and_restores_a_squeezed_lattice_volume():
+    corners, triangles = cube_cage()
+    cages = mss.VolumeCages(np.array([0, 12]), triangles,
+                            np.array([cage_volume(corners, triangles)]))
+    no_springs = mss.spring_layout(np.zeros((0, 2)), [], [], [], [0, 8])
+    x, v = mss.mss_steps(corners, np.zeros_like(corners), np.ones(8), np.zeros(8, bool),
+                         no_springs, [0, 8], 0.05, 100, bulk_modulus=5.0, cages=cages)
+    assert np.array_equal(x, corners) and not v.any()
+    # springs only on the cube's edges along z: a squeeze in x and y meets no spring
+    springs = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])
+    layout = mss.spring_layout(springs, np.full(4, 2.0), np.full(4, 10.0), np.full(4, 0.5),
+                               [0, 8])
+    squeezed = corners * [0.8, 0.8, 1.0]
+    for bulk, kept in ((0.0, False), (5.0, True)):
+        x, _ = mss.mss_steps(squeezed, np.zeros_like(corners), np.ones(8), np.zeros(8, bool),
+                             layout, [0, 8], 0.05, 400, drag=5.0, bulk_modulus=bulk, cages=cages)
+        ratio = cage_volume(x, triangles) / cages.rest_volume[0]
+        assert (abs(ratio - 1.0) < 1e-3) == kept, ratio

@@ -24,7 +24,8 @@ def pressed():
         ["front", "back"], np.array([0, n, 2 * n]), positions, (index == 0) | (index == 7),
         np.ones(2 * n), np.ones(2 * n, bool), radius, fibre, index,
         np.concatenate([springs, springs + n]), np.concatenate([rest, rest]),
-        np.full(2 * len(rest), 10.0), np.full(2 * len(rest), 0.5), np.zeros((2 * n, 2), int))
+        np.full(2 * len(rest), 10.0), np.full(2 * len(rest), 0.5), np.zeros((2 * n, 2), int),
+        np.concatenate([pts, second]))
     g = np.arange(-2, 10, 1.0)
     sheet = np.stack(np.meshgrid(g, g, [-1.5], indexing="ij"), -1).reshape(-1, 3)
     bones = (sheet, np.full(len(sheet), 1.0), np.zeros(len(sheet), int))
