@@ -66,6 +66,7 @@ def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
     resampler.SetInputConnection(0, fibres.GetOutputPort())
     springs.SetInputConnection(0, resampler.GetOutputPort())
     springs.SetInputConnection(1, muscles.GetOutputPort())
+    springs.SetInputConnection(2, bones.GetOutputPort())
     pose.SetInputConnection(0, springs.GetOutputPort())
     pose.SetInputConnection(1, bones.GetOutputPort())
     pose.SetInputConnection(2, motion.GetOutputPort())

@@ -1,7 +1,8 @@
 """Spring Builder: the mass-spring model of every muscle (DESIGN §5–6, paper §3.2–3.3).
 
-Inputs: ``Particles`` (the Fibre Resampler's output) and ``Surfaces`` (the rest muscle surfaces,
-``muscles.vtm``, blocks named as the particles' blocks). Output ``Model``: the particle blocks in
+Inputs: ``Particles`` (the Fibre Resampler's output), ``Surfaces`` (the rest muscle surfaces,
+``muscles.vtm``, blocks named as the particles' blocks) and, optional, ``Bones`` (the rest bone
+surfaces, ``bones.vtm``). Output ``Model``: the particle blocks in
 the same order, each a vtkPolyData with
 
 * points: the particles; cells: the springs, two-point line cells (each once, never from a
@@ -13,16 +14,20 @@ the same order, each a vtkPolyData with
 
 The rest pose is the ``rest_position`` array when present, else the points. Boundary particles
 and radii follow :mod:`muscle_mss.core.radii`; the radii of all muscles are shrunk together so
-that no two spheres of different muscles overlap in the rest pose (with either radius rule).
+that no two spheres of different muscles overlap in the rest pose (with either radius rule), and,
+with ``Bones``, so that no muscle sphere overlaps a bone sphere (the solver's bone spheres at
+:data:`~muscle_mss.core.bone_spheres.DEFAULT_SPACING`) in the rest pose: DESIGN §6, no two
+spheres of different objects overlap at rest.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, shrink_radii,
-                                   sphere_radii)
-from muscle_mss.core.scene import MUSCLES_FILE
+from muscle_mss.core.bone_spheres import bone_spheres
+from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, clear_of_obstacles,
+                                   shrink_radii, sphere_radii)
+from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE
 from muscle_mss.core.springs import (delaunay_springs, knn_springs, lattice_springs,
                                      rest_lengths)
 
@@ -76,11 +81,15 @@ class SpringBuilder(MuscleFilter):
             "particles and their collision sphere radii. Boundary: the surface of the fibre "
             "lattice when the fibres have a fibre_grid, else the particles nearest to the muscle "
             "surface's vertices. Radii follow the paper's heuristic (or the simpler rule) and "
-            "are then shrunk so that spheres of different muscles do not overlap at rest.")
+            "are then shrunk so that spheres of different muscles do not overlap at rest, nor "
+            "(with the optional Bones input) muscle spheres and bone spheres.")
     INPUTS = (Port("Particles", "vtkMultiBlockDataSet",
                    "particles per muscle (the Fibre Resampler's output)"),
               Port("Surfaces", "vtkMultiBlockDataSet",
-                   "muscles.vtm: the rest muscle surfaces, blocks named as the particles' blocks"))
+                   "muscles.vtm: the rest muscle surfaces, blocks named as the particles' blocks"),
+              Port("Bones", "vtkMultiBlockDataSet",
+                   "bones.vtm: the rest bone surfaces (optional); muscle spheres are then kept "
+                   "clear of the bone spheres in the rest pose", optional=True))
     OUTPUTS = (Port("Model", "vtkMultiBlockDataSet",
                     "the mass-spring model per muscle: particles and springs"),)
     PROPERTIES = (
@@ -136,12 +145,30 @@ class SpringBuilder(MuscleFilter):
         radii = shrink_radii(np.concatenate([m["rest"] for m in models]),
                              np.concatenate([m["radius"] for m in models]),
                              np.repeat(np.arange(len(models)), sizes))
+        if inputs[2] is not None:
+            bone_centres, bone_radii = self._bone_spheres(inputs[2])
+            radii = clear_of_obstacles(np.concatenate([m["rest"] for m in models]), radii,
+                                       bone_centres, bone_radii)
         starts = np.concatenate([[0], np.cumsum(sizes)])
         items = [(name, self._output_block(name, block, model, radii[starts[i]:starts[i + 1]],
                                            layout))
                  for i, ((name, block), model) in enumerate(zip(blocks, models))]
         self.progress(1.0)
         V.fill_multiblock(outputs[0], items)
+
+    @staticmethod
+    def _bone_spheres(bones):
+        """The rest bones' spheres as the solver samples them at its default spacing."""
+        centres, radii = [np.zeros((0, 3))], [np.zeros(0)]
+        for name, block in V.blocks(bones, where=BONES_FILE):
+            where = f"{BONES_FILE} block '{name}'"
+            if not block.IsA("vtkPolyData"):
+                raise MuscleMSSError(f"{where} is a {block.GetClassName()}; a bone must be a "
+                                     "triangle vtkPolyData")
+            c, r = bone_spheres(V.points_of(block), V.triangles_of(block, where), where=where)
+            centres.append(c)
+            radii.append(r)
+        return np.concatenate(centres), np.concatenate(radii)
 
     def _muscle_model(self, name, block, vertices, layout) -> dict:
         """Rest positions, springs, boundary and unshrunk radii of one muscle."""

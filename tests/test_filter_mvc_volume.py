@@ -384,6 +384,7 @@ def test_demo_scene_at_a_walking_pose_keeps_its_volume_within_6_percent():
     from muscle_mss.filters import MSSCollisionSolver, RigidPoseTransform
 
     scene, (muscles, bones, motion), builder = _demo_model()
+    builder.SetInputData(2, bones)
     pose = RigidPoseTransform()
     pose.SetInputConnection(0, builder.GetOutputPort())
     pose.SetInputData(1, bones)

@@ -57,10 +57,12 @@ def resample(fibres, **props):
     return f.GetOutputDataObject(0)
 
 
-def build(particles, surfaces, **props):
+def build(particles, surfaces, bones=None, **props):
     f = SpringBuilder()
     f.SetInputDataObject(0, particles)
     f.SetInputDataObject(1, surfaces)
+    if bones is not None:
+        f.SetInputDataObject(2, bones)
     for key, value in props.items():
         getattr(f, "Set" + key)(value)
     f.Update()
@@ -360,3 +362,29 @@ def test_small_demo_scene_spheres_do_not_overlap_after_the_shrink(small_scene):
     model = build(resample(fibres, ParticlesPerFibre=10), muscles)
     assert len(V.blocks(model)) == len(small_scene.muscles)
     assert cross_overlaps(model) == 0
+
+
+def test_with_bones_no_muscle_sphere_overlaps_a_bone_sphere_at_rest(small_scene):
+    from muscle_mss.core.bone_spheres import bone_spheres
+    from muscle_mss.filters.scene_io import scene_to_vtk
+    muscles, fibres, bones, _ = scene_to_vtk(small_scene)
+    particles = resample(fibres, ParticlesPerFibre=10)
+    alone, cleared = build(particles, muscles), build(particles, muscles, bones)
+    assert cross_overlaps(cleared) == 0
+    spheres = [bone_spheres(V.points_of(b), V.triangles_of(b)) for _, b in V.blocks(bones)]
+    centres = np.concatenate([c for c, _ in spheres])
+    bone_radii = np.concatenate([r for _, r in spheres])
+
+    def overlaps(model):
+        count = 0
+        for _, block in V.blocks(model):
+            radius = V.point_array(block, A.RADIUS)
+            gap = (np.linalg.norm(V.points_of(block)[:, None] - centres[None], axis=2)
+                   - bone_radii).min(axis=1)
+            count += int(((radius > 0) & (radius > gap)).sum())
+        return count
+
+    assert overlaps(alone) > 50 and overlaps(cleared) == 0
+    for (_, a), (_, b) in zip(V.blocks(alone), V.blocks(cleared)):
+        ra, rb = V.point_array(a, A.RADIUS), V.point_array(b, A.RADIUS)
+        assert (rb <= ra).all() and (rb > 0).sum() > 0.7 * (ra > 0).sum()

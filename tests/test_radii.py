@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface,
-                                   overlapping_pairs, shrink_radii, sphere_radii)
+                                   clear_of_obstacles, overlapping_pairs, shrink_radii,
+                                   sphere_radii)
 
 
 def grid_particles(rows, cols, n):
@@ -146,3 +147,20 @@ def test_coinciding_particles_of_two_objects_lose_their_spheres():
     centres = np.array([[1.0, 2, 3], [1.0, 2, 3], [5.0, 2, 3]])
     shrunk = shrink_radii(centres, [1.0, 1.0, 1.0], [0, 1, 1])
     assert np.array_equal(shrunk, [0.0, 0.0, 1.0])
+
+
+def test_clear_of_obstacles_equals_the_all_pairs_reference():
+    rng = np.random.default_rng(11)
+    centres = rng.uniform(0, 30, size=(200, 3))
+    radii = np.where(rng.random(200) < 0.2, 0.0, rng.uniform(0.5, 6.0, 200))
+    obstacles = rng.uniform(0, 30, size=(300, 3))
+    obstacle_radii = rng.uniform(0.5, 2.5, 300)
+    got = clear_of_obstacles(centres, radii, obstacles, obstacle_radii)
+    room = (np.linalg.norm(centres[:, None] - obstacles[None], axis=2) - obstacle_radii).min(1)
+    expected = np.where(radii > 0, np.minimum(radii, np.maximum(room, 0.0)), 0.0)
+    np.testing.assert_allclose(got, expected, rtol=1e-8, atol=0)
+    assert (got < radii).sum() > 20 and (got == 0).sum() > (radii == 0).sum()
+    gap = np.linalg.norm(centres[:, None] - obstacles[None], axis=2) - obstacle_radii
+    assert ((got[:, None] <= gap) | (got[:, None] == 0)).all()
+    assert np.array_equal(clear_of_obstacles(centres, radii, np.zeros((0, 3)), np.zeros(0)),
+                          radii)
