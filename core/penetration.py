@@ -9,8 +9,10 @@ from scipy.spatial import cKDTree
 
 
 def max_penetration_per_object(centres, radii, owner, n_objects, bone_centres=None,
-                               bone_radii=None) -> np.ndarray:
-    """Deepest overlap (mm; 0 when none) of each object's spheres with spheres of other objects.
+                               bone_radii=None, fixed=None) -> np.ndarray:
+    """Deepest overlap (mm; 0 when none) of each object's spheres with spheres of other objects,
+    over the pairs a solver can resolve: at least one sphere free to move (bone spheres and
+    ``fixed`` muscle spheres — tendon attachments, which sit inside their bone — cannot).
 
     Parameters
     ----------
@@ -19,16 +21,19 @@ def max_penetration_per_object(centres, radii, owner, n_objects, bone_centres=No
     owner : (n,) int, the muscle of each sphere, in ``0 .. n_objects - 1``
     bone_centres : (k, 3) float64 mm, bone_radii : (k,) float64 mm, optional
         Bone spheres; they count as objects of their own for every muscle.
+    fixed : (n,) bool, optional, muscle spheres that never move
     """
     centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
     radii = np.asarray(radii, dtype=np.float64).reshape(-1)
     owner = np.asarray(owner, dtype=np.int64).reshape(-1)
+    free = np.ones(len(centres), bool) if fixed is None else ~np.asarray(fixed, bool).reshape(-1)
     if bone_centres is not None and len(bone_centres):
         centres_all = np.concatenate([centres, np.asarray(bone_centres, dtype=np.float64)])
         radii_all = np.concatenate([radii, np.asarray(bone_radii, dtype=np.float64)])
         owner_all = np.concatenate([owner, np.full(len(bone_centres), -1)])
+        free_all = np.concatenate([free, np.zeros(len(bone_centres), bool)])
     else:
-        centres_all, radii_all, owner_all = centres, radii, owner
+        centres_all, radii_all, owner_all, free_all = centres, radii, owner, free
     deepest = np.zeros(n_objects)
     if len(centres) == 0:
         return deepest
@@ -37,7 +42,7 @@ def max_penetration_per_object(centres, radii, owner, n_objects, bone_centres=No
     counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(neighbours))
     i = np.repeat(np.arange(len(centres)), counts)
     j = np.fromiter((k for n in neighbours for k in n), dtype=np.int64, count=int(counts.sum()))
-    other = owner_all[j] != owner[i]
+    other = (owner_all[j] != owner[i]) & (free[i] | free_all[j])
     i, j = i[other], j[other]
     depth = radii[i] + radii_all[j] - np.linalg.norm(centres[i] - centres_all[j], axis=1)
     np.maximum.at(deepest, owner[i], np.maximum(depth, 0.0))

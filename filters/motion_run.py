@@ -131,16 +131,18 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     seconds = wallclock.perf_counter() - start
 
     names = [n for n, _ in V.blocks(particles, "solved model")]
-    centres, radii, owner = [], [], []
+    centres, radii, owner, fixed = [], [], [], []
     for k, (name, block) in enumerate(V.blocks(particles, "solved model")):
-        boundary = V.point_array(block, A.BOUNDARY).astype(bool)
-        centres.append(V.points_of(block)[boundary])
-        radii.append(V.point_array(block, A.RADIUS)[boundary])
-        owner.append(np.full(boundary.sum(), k))
+        radius = V.point_array(block, A.RADIUS)
+        sphere = V.point_array(block, A.BOUNDARY).astype(bool) & (radius > 0)
+        centres.append(V.points_of(block)[sphere])
+        radii.append(radius[sphere])
+        owner.append(np.full(sphere.sum(), k))
+        fixed.append(V.point_array(block, A.FIXED).astype(bool)[sphere])
     bone_centres, bone_radii, _ = bone_sphere_set(bones, p.solver.value("BoneSphereSpacing"))
     penetration = max_penetration_per_object(
         np.concatenate(centres), np.concatenate(radii), np.concatenate(owner), len(names),
-        bone_centres, bone_radii)
+        bone_centres, bone_radii, np.concatenate(fixed))
 
     fibre_stats = {}
     for name, block in V.blocks(fibres, "deformed fibres"):

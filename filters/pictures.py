@@ -178,7 +178,7 @@ def poses_picture(pipeline, index, path, window_size=(1800, 800)) -> str:
                              smooth_shading=True)
         plotter.view_vector((1.0, 0.8, 0.2), viewup=(0.0, 0.0, 1.0))
         plotter.reset_camera()
-        plotter.camera.zoom(1.5)
+        plotter.camera.zoom(1.25)
     plotter.link_views()
     plotter.screenshot(str(path))
     plotter.close()
