@@ -22,6 +22,7 @@ import numpy as np
 from numba import njit
 
 from .errors import MuscleMSSError
+from .mesh_checks import checked_surface
 
 DEFAULT_SPACING = 2.05          # mm: ~8,600 spheres on the demo pelvis (paper: 8527)
 SPHERES_PER_AREA = 0.62         # centres ~ SPHERES_PER_AREA * area / spacing^2
@@ -127,20 +128,6 @@ def surface_area(points, triangles) -> float:
                                                 p[t[:, 2]] - p[t[:, 0]]), axis=1).sum())
 
 
-def _check(points, triangles, where):
-    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    triangles = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
-    if len(triangles) == 0:
-        raise MuscleMSSError(f"{where} has no triangles; a bone must be a closed triangle surface")
-    if triangles.min() < 0 or triangles.max() >= len(points):
-        raise MuscleMSSError(f"{where} has triangles referring to missing points")
-    used = points[np.unique(triangles)]
-    if not np.isfinite(used).all():
-        raise MuscleMSSError(f"{where} has a NaN or infinite coordinate; every coordinate must "
-                             "be finite")
-    return points, triangles
-
-
 def _sample(points, triangles, spacing, limit):
     q = _subdivisions(points, triangles, spacing / CANDIDATES_PER_SPACING)
     first = np.concatenate([[0], np.cumsum((q + 1) * (q + 2) // 2)])
@@ -164,7 +151,7 @@ def bone_spheres(points, triangles, spacing: float | None = None, count: int | N
     points (n, 3) mm and triangles (m, 3) int of a triangle surface; ``where`` names it in
     errors.
     """
-    points, triangles = _check(points, triangles, where)
+    points, triangles = checked_surface(points, triangles, where)
     if count is None:
         spacing = DEFAULT_SPACING if spacing is None else float(spacing)
         if not spacing > 0.0:

@@ -6,7 +6,33 @@ outward-oriented (positive signed volume).
 """
 import numpy as np
 
+from .errors import MuscleMSSError
 from .volume import signed_volume
+
+
+def structure_problem(points, triangles) -> str | None:
+    """Why ``points`` (n, 3) and ``triangles`` (m, 3) are no triangle surface at all (none,
+    dangling indices, a non-finite coordinate), or None."""
+    if len(triangles) == 0:
+        return "has no triangles; a surface must be a closed triangle mesh"
+    if triangles.min() < 0 or triangles.max() >= len(points):
+        return "has triangles referring to missing points"
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        return (f"point {int(np.flatnonzero(bad)[0])} has a NaN or infinite coordinate; "
+                "every coordinate must be finite")
+    return None
+
+
+def checked_surface(points, triangles, where: str):
+    """``(points (n, 3) float64, triangles (m, 3) int64)`` as contiguous arrays, or raise
+    :class:`MuscleMSSError` naming ``where`` when :func:`structure_problem` finds a problem."""
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
+    problem = structure_problem(points, triangles)
+    if problem:
+        raise MuscleMSSError(f"{where}: {problem}")
+    return points, triangles
 
 
 def surface_problems(points, triangles):
@@ -19,14 +45,9 @@ def surface_problems(points, triangles):
     """
     points = np.asarray(points, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
-    if len(triangles) == 0:
-        return ["has no triangles; a surface must be a closed triangle mesh"]
-    if triangles.min() < 0 or triangles.max() >= len(points):
-        return ["has triangles referring to missing points"]
-    bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
-        return [f"point {int(np.flatnonzero(bad)[0])} has a NaN or infinite coordinate; "
-                "every coordinate must be finite"]
+    problem = structure_problem(points, triangles)
+    if problem:
+        return [problem]
     problems = []
     directed = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
     undirected = np.sort(directed, axis=1)

@@ -26,6 +26,7 @@ import numpy as np
 from numba import prange
 
 from .errors import MuscleMSSError
+from .mesh_checks import checked_surface
 from .scene import Motion
 
 LINEAR = "linear"
@@ -631,16 +632,7 @@ def bone_distances(points, bones, labels=None) -> np.ndarray:
     corners, cell_starts, block_starts, bone_blocks = [], [[0]], [[0]], [0]
     for b, (vertices, triangles) in enumerate(bones):
         label = labels[b] if labels is not None else f"bone {b}"
-        v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-        t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-        if len(t) == 0:
-            raise MuscleMSSError(f"{label}: has no triangles; a bone must be a triangle surface")
-        if t.min() < 0 or t.max() >= len(v):
-            raise MuscleMSSError(f"{label}: has triangles referring to missing points")
-        bad = ~np.isfinite(v).all(axis=1)
-        if bad.any():
-            raise MuscleMSSError(f"{label}: point {int(np.flatnonzero(bad)[0])} has a NaN or "
-                                 "infinite coordinate; every coordinate must be finite")
+        v, t = checked_surface(vertices, triangles, label)
         sorted_corners, cells, blocks = _cells_and_blocks(v[t])
         # Shift this bone's ranges behind the previous bones' triangles and cells.
         cell_starts.append(cells[1:] + cell_starts[-1][-1])

@@ -21,10 +21,11 @@ import hashlib
 import numpy as np
 
 from muscle_mss.core import solver as S
-from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
+from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError
 
 from . import array_names as A
+from .bone_sets import bone_sphere_set
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .properties import Property
@@ -39,9 +40,7 @@ MEAN_DISPLACEMENT = "mean_displacement_"
 def _muscle_block(name, block):
     """Arrays of one muscle block, checked."""
     where = f"{MODEL} block '{name}'"
-    if not block.IsA("vtkPolyData"):
-        raise MuscleMSSError(f"{where} is a {block.GetClassName()}; a model block must be a "
-                             "vtkPolyData of particles and spring lines")
+    V.require_polydata(block, where, "a model block of particles and spring lines")
     n = block.GetNumberOfPoints()
     if n == 0:
         raise MuscleMSSError(f"{where} has no particles")
@@ -89,23 +88,6 @@ def _muscle_block(name, block):
         bad = int(np.flatnonzero(springs[:, 0] == springs[:, 1])[0])
         raise MuscleMSSError(f"{where}: spring {bad} joins particle {springs[bad, 0]} to itself")
     return {"points": points, "springs": springs, "grid": grid, **data, **cells}
-
-
-def _bone_spheres(bones, spacing):
-    centres, radii, ids = [], [], []
-    for k, (name, block) in enumerate(V.blocks(bones, where=BONES)):
-        where = f"{BONES} block '{name}'"
-        if not block.IsA("vtkPolyData"):
-            raise MuscleMSSError(f"{where} is a {block.GetClassName()}; a bone must be a "
-                                 "triangle vtkPolyData")
-        c, r = bone_spheres(V.points_of(block), V.triangles_of(block, where), spacing,
-                            where=where)
-        centres.append(c)
-        radii.append(r)
-        ids.append(np.full(len(c), k))
-    if not centres:
-        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64)
-    return np.concatenate(centres), np.concatenate(radii), np.concatenate(ids)
 
 
 class MSSCollisionSolver(MuscleFilter):
@@ -215,7 +197,7 @@ class MSSCollisionSolver(MuscleFilter):
                                  "muscle")
         parts = [_muscle_block(name, block) for name, block in blocks]
         model = self._model([name for name, _ in blocks], parts)
-        bones = _bone_spheres(inputs[1], self.value("BoneSphereSpacing"))
+        bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
         prepared = self._prepare(model)
         result = S.solve(model, *bones, settings=self.settings(),
                          progress=lambda f: self.progress(0.05 + 0.9 * f), prepared=prepared)

@@ -37,9 +37,7 @@ def fibre_polylines(block, where: str):
 
     ``grid`` is the (F, 2) int32 ``fibre_grid`` of the polylines, or None when absent.
     """
-    if not block.IsA("vtkPolyData"):
-        raise MuscleMSSError(f"{where} is a {block.GetClassName()}; a fibre block must be a "
-                             "vtkPolyData of polylines")
+    V.require_polydata(block, where, "a fibre block of polylines")
     offsets, connectivity = V.lines_of(block)
     if len(offsets) < 2:
         raise MuscleMSSError(f"{where} has no fibres; a muscle needs at least one fibre "

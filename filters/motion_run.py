@@ -119,7 +119,7 @@ class TimePointResult:
 def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     """Run the pipeline at time point ``index`` and collect its outputs and summary rows."""
     from muscle_mss.core.penetration import max_penetration_per_object
-    from .collision_solver import _bone_spheres as bone_sphere_set
+    from .bone_sets import bone_sphere_set
     t = p.times[index]
     start = wallclock.perf_counter()
     surfaces = _copy(update_at(p.probe, 0, t))
@@ -139,7 +139,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
         radii.append(radius[sphere])
         owner.append(np.full(sphere.sum(), k))
         fixed.append(V.point_array(block, A.FIXED).astype(bool)[sphere])
-    bone_centres, bone_radii, _ = bone_sphere_set(bones, p.solver.value("BoneSphereSpacing"))
+    bone_centres, bone_radii, _ = bone_sphere_set(bones, p.solver.value("BoneSphereSpacing"), "posed bones")
     penetration = max_penetration_per_object(
         np.concatenate(centres), np.concatenate(radii), np.concatenate(owner), len(names),
         bone_centres, bone_radii, np.concatenate(fixed))

@@ -165,9 +165,7 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
         raise MuscleMSSError(f"{where}: rest_position has NaN or infinite values")
     cage = muscle_cage(rest_positions, boundary, fibre_id, fibre_index, fibre_grid, where)
     surface_where = f"RestSurfaces block '{name}'"
-    if not surface.IsA("vtkPolyData"):
-        raise MuscleMSSError(f"{surface_where}: is a {surface.GetClassName()}; a muscle surface "
-                             "must be a triangle vtkPolyData")
+    V.require_polydata(surface, surface_where, "a muscle's triangle surface")
     rest_points = V.points_of(surface)
     triangles = V.triangles_of(surface, surface_where)
     if len(rest_points) == 0 or len(triangles) == 0:

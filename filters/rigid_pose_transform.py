@@ -34,16 +34,6 @@ def _finite(rest, where: str) -> np.ndarray:
     return rest
 
 
-def _polydata_blocks(multiblock, source: str) -> list:
-    """The named leaves of an input multiblock, each checked to be a vtkPolyData."""
-    items = V.blocks(multiblock, where=source)
-    for name, block in items:
-        if not block.IsA("vtkPolyData"):
-            raise MuscleMSSError(f"{source} block '{name}': is a {block.GetClassName()}; it must "
-                                 "be a vtkPolyData")
-    return items
-
-
 def _tree_stamp(data):
     """What identifies one version of an input: the object and the newest MTime in its tree."""
     if data is None:
@@ -197,13 +187,13 @@ class RigidPoseTransform(MuscleFilter):
     # ---- execution ----------------------------------------------------------------------------
     def execute(self, inputs, outputs):
         model, bones, table, surfaces = inputs
-        bone_items = _polydata_blocks(bones, BONES_FILE)
+        bone_items = V.polydata_blocks(bones, BONES_FILE)
         if not bone_items:
             raise MuscleMSSError(f"{BONES_FILE}: has no blocks; the pose needs at least one bone")
         bone_names = [name for name, _ in bone_items]
         motion = self._read_motion(table, bone_names)
-        model_items = _polydata_blocks(model, "Model")
-        surface_items = _polydata_blocks(surfaces, "Surfaces") if surfaces is not None else []
+        model_items = V.polydata_blocks(model, "Model")
+        surface_items = V.polydata_blocks(surfaces, "Surfaces") if surfaces is not None else []
 
         time = self.requested_time(default=float(motion.times[0]))
         matrices, used = pose_at(motion, time)

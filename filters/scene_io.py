@@ -130,23 +130,17 @@ def read_scene(folder):
 def surfaces_from_vtk(multiblock, filename) -> dict:
     """``{name: Surface}`` of a multiblock of triangle surfaces."""
     out = {}
-    for name, block in V.blocks(multiblock, where=filename):
-        where = f"{filename} block '{name}'"
-        if not block.IsA("vtkPolyData"):
-            raise MuscleMSSError(f"{where}: is a {block.GetClassName()}; it must be a vtkPolyData "
-                                 "triangle surface")
-        out[name] = Surface(V.points_of(block), V.triangles_of(block, where))
+    for name, block in V.polydata_blocks(multiblock, filename, "a triangle surface"):
+        out[name] = Surface(V.points_of(block),
+                            V.triangles_of(block, f"{filename} block '{name}'"))
     return out
 
 
 def fibres_from_vtk(multiblock, filename=FIBRES_FILE) -> dict:
     """``{name: FibreSet}`` of a multiblock of fibre polylines."""
     out = {}
-    for name, block in V.blocks(multiblock, where=filename):
+    for name, block in V.polydata_blocks(multiblock, filename, "a block of fibre polylines"):
         where = f"{filename} block '{name}'"
-        if not block.IsA("vtkPolyData"):
-            raise MuscleMSSError(f"{where}: is a {block.GetClassName()}; it must be a vtkPolyData "
-                                 "of fibre polylines")
         points = V.points_of(block)
         offsets, connectivity = V.lines_of(block)
         grid = V.cell_array(block, A.FIBRE_GRID, where, required=False)

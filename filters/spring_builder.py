@@ -24,7 +24,6 @@ from __future__ import annotations
 import numpy as np
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, clear_of_obstacles,
                                    shrink_radii, sphere_radii)
 from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE
@@ -34,6 +33,7 @@ from muscle_mss.core.springs import (delaunay_springs, knn_springs, lattice_spri
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
+from .bone_sets import bone_sphere_set
 from .properties import Property
 
 LAYOUTS = ("lattice-6", "lattice-26", "Delaunay", "k-NN")
@@ -54,9 +54,7 @@ def surface_vertices(surfaces: dict, name: str) -> np.ndarray:
     if surface is None:
         raise MuscleMSSError(f"{MUSCLES_FILE} has no block '{name}'; the Surfaces input needs "
                              "the rest surface of every muscle of the Particles input")
-    if not surface.IsA("vtkPolyData"):
-        raise MuscleMSSError(f"{where} is a {surface.GetClassName()}; a muscle surface must be "
-                             "a triangle vtkPolyData")
+    V.require_polydata(surface, where, "a muscle's triangle surface")
     triangles = V.triangles_of(surface, where)
     if len(triangles) == 0:
         raise MuscleMSSError(f"{where} has no triangles; a muscle surface must be a closed "
@@ -146,7 +144,7 @@ class SpringBuilder(MuscleFilter):
                              np.concatenate([m["radius"] for m in models]),
                              np.repeat(np.arange(len(models)), sizes))
         if inputs[2] is not None:
-            bone_centres, bone_radii = self._bone_spheres(inputs[2])
+            bone_centres, bone_radii, _ = bone_sphere_set(inputs[2], where=BONES_FILE)
             radii = clear_of_obstacles(np.concatenate([m["rest"] for m in models]), radii,
                                        bone_centres, bone_radii)
         starts = np.concatenate([[0], np.cumsum(sizes)])
@@ -156,26 +154,10 @@ class SpringBuilder(MuscleFilter):
         self.progress(1.0)
         V.fill_multiblock(outputs[0], items)
 
-    @staticmethod
-    def _bone_spheres(bones):
-        """The rest bones' spheres as the solver samples them at its default spacing."""
-        centres, radii = [np.zeros((0, 3))], [np.zeros(0)]
-        for name, block in V.blocks(bones, where=BONES_FILE):
-            where = f"{BONES_FILE} block '{name}'"
-            if not block.IsA("vtkPolyData"):
-                raise MuscleMSSError(f"{where} is a {block.GetClassName()}; a bone must be a "
-                                     "triangle vtkPolyData")
-            c, r = bone_spheres(V.points_of(block), V.triangles_of(block, where), where=where)
-            centres.append(c)
-            radii.append(r)
-        return np.concatenate(centres), np.concatenate(radii)
-
     def _muscle_model(self, name, block, vertices, layout) -> dict:
         """Rest positions, springs, boundary and unshrunk radii of one muscle."""
         where = f"{PARTICLES} block '{name}'"
-        if not block.IsA("vtkPolyData"):
-            raise MuscleMSSError(f"{where} is a {block.GetClassName()}; a particle block must "
-                                 "be a vtkPolyData")
+        V.require_polydata(block, where, "a particle block")
         if block.GetNumberOfPoints() == 0:
             raise MuscleMSSError(f"{where} has no particles")
         rest = V.point_array(block, A.REST_POSITION, where, required=False, dtype=np.float64)

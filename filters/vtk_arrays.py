@@ -208,6 +208,23 @@ def blocks(multiblock, where: str = "") -> list:
     return items
 
 
+def require_polydata(block, where: str, what: str = "a vtkPolyData"):
+    """``block`` itself when it is a vtkPolyData; otherwise raise naming ``where`` and ``what``
+    it must be (e.g. "a triangle surface")."""
+    if not block.IsA("vtkPolyData"):
+        raise MuscleMSSError(f"{where}: is a {block.GetClassName()}; it must be {what} "
+                             "(a vtkPolyData)")
+    return block
+
+
+def polydata_blocks(multiblock, where: str, what: str = "a vtkPolyData") -> list:
+    """:func:`blocks`, each checked by :func:`require_polydata`."""
+    items = blocks(multiblock, where=where)
+    for name, block in items:
+        require_polydata(block, f"{where} block '{name}'", what)
+    return items
+
+
 def fill_multiblock(out: vtkMultiBlockDataSet, items) -> vtkMultiBlockDataSet:
     """Make ``out`` a flat multiblock of the named ``items`` ``[(name, dataset), …]``."""
     out.Initialize()
