@@ -1,24 +1,29 @@
 """The default collision structure: spatial hashing on a uniform grid, with candidate lists.
 
-Spheres are hashed by their cell in a uniform grid (the key is the cell's linear index; the
-spheres are counting-sorted by key and copied in that order, so a query reads each cell's spheres
-contiguously; every cell also carries the bit set of its objects, so a query skips cells holding
-only its own muscle). Sphere ``i`` visits the cells within ``r_i + r_max + skin`` of its centre
-and lists the spheres of *other* objects within ``r_i + r_j + skin``. Between rebuilds only those
-candidates are tested exactly, so the colliding pairs found are exactly those of a brute-force
-test as long as the lists are complete:
+Spheres are hashed by their cell in a uniform grid (the key is the cell's linear index and the
+sphere's size level; the spheres are counting-sorted by key and copied in that order, so a
+query reads each cell's spheres contiguously; every key also carries the bit set of its
+objects, so a query skips cells holding only its own muscle). Radii vary tenfold, so a cell's
+spheres are split into size levels (:func:`size_levels`), and a query looks for the spheres of
+each level only within ``r_i + r_level + skin`` of its centre, not as far as the largest sphere
+reaches. A sphere lists the spheres of *other* objects within ``r_i + r_j + skin``; between
+refreshes only those candidates are tested exactly, so the colliding pairs found are exactly
+those of a brute-force test as long as the lists are complete:
 
-* muscle-muscle lists are rebuilt when any muscle sphere has moved more than ``skin / 2`` since
-  they were built (two spheres farther apart than ``r_i + r_j + skin`` cannot then have come
-  closer than ``r_i + r_j``);
+* muscle-muscle (:func:`muscle_contacts`): each sphere refreshes its own list when it has
+  moved more than ``skin / 2`` from where its list was built (its reference position), and a
+  pair is tested from the list refreshed last; spheres that jitter near tendon attachments pay
+  for their own queries while the others keep their lists. The grid of reference positions is
+  patched in place between rebuilds. (:func:`candidate_lists` still builds all lists at once,
+  for :func:`colliding_pairs`.)
 * bones do not move during a solve: their grid is built once, and each muscle sphere rebuilds
-  its own bone list when *it* has moved more than ``skin / 2`` (spheres pressed against a bone
-  jitter there every iteration; the others keep their lists).
+  its own bone list when *it* has moved more than ``skin / 2`` (:func:`refresh_own_lists`).
 
-Every loop over spheres is a ``prange`` in which sphere ``i`` only writes its own entries (its
-candidates, its displacement): no atomics, and sums in a fixed order, so results do not depend
-on the thread count. The exact test and the response rule are those of
-:mod:`muscle_mss.core.mss`, shared with :mod:`muscle_mss.core.octree_bvh`.
+Every parallel loop over spheres is a ``prange`` in which sphere ``i`` only writes its own
+entries (its candidates, its displacement): no atomics, and sums in a fixed order, so results
+do not depend on the thread count. Small bookkeeping passes run serially: waking the second
+thread costs more than they do on a busy machine. The exact test and the response rule are
+those of :mod:`muscle_mss.core.mss`, shared with :mod:`muscle_mss.core.octree_bvh`.
 """
 from __future__ import annotations
 
@@ -27,11 +32,18 @@ from numba import njit, prange
 
 from .mss import Spheres, deeper, push_share, sphere_push
 
-# Skin of the candidate lists as a fraction of the mean muscle sphere radius: larger lists
-# against fewer rebuilds.
-SKIN_FRACTION = 1.5
-# Slots per muscle sphere for its bone candidates at first; doubled when one needs more.
+# Skin of the candidate lists as a fraction of the mean muscle sphere radius: longer lists
+# against more refreshes (measured on the paper's workload, N = 80: 0.75 beats 0.5 and 1.5).
+SKIN_FRACTION = 0.75
+# Radius quantiles that split the spheres of a grid into size levels (:func:`size_levels`).
+LEVEL_QUANTILES = (0.5, 0.9)
+# The muscle grid is rebuilt when a sphere lies this many cells outside its cell.
+DRIFT_FRACTION = 0.25
+# Slots per muscle sphere for its candidates at first; doubled when one needs more.
 INITIAL_ROOM = 64
+# mm added to the reach of the refreshed muscle lists, so that rounding cannot drop a pair
+# whose spheres each moved exactly half the skin
+ROUNDING_GUARD = 1e-9
 
 
 @njit(cache=True)
@@ -44,48 +56,145 @@ def grid_table(centres, radius, cell, objects):
     contiguously. The cell grows (from ``cell`` mm) until the grid has at most 8 cells per
     sphere. Each cell also gets the bit set of its spheres' objects (:func:`_object_bit`), so a
     query skips cells holding only its own object's spheres. Returns ``(lower (3,), dims (3,)
-    int64, cell, start (cells + 1,), items (n,), bits (cells,), packed)``; sphere ``items[e]``
-    is the ``e``-th in key order.
+    int64, cell, start (cells + 1,), items (n,), bits (cells,), packed, tops (1,))``; sphere
+    ``items[e]`` is the ``e``-th in key order; ``tops`` the size levels
+    (:func:`size_levels`, :func:`_fill_grid`).
     """
     n = centres.shape[1]
+    tops = size_levels(radius)
     lower = np.zeros(3)
+    dims = np.ones(3, dtype=np.int64)
+    start = np.zeros(_cell_capacity(n) * tops.shape[0] + 1, dtype=np.int64)
+    items = np.empty(n, dtype=np.int64)
+    bits = np.zeros(_cell_capacity(n) * tops.shape[0], dtype=np.uint64)
+    packed = np.empty((5, n))
+    key = np.empty(n, dtype=np.int64)
+    cell = _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, bits,
+                      packed, key)
+    cells = dims[0] * dims[1] * dims[2]
+    keys = cells * tops.shape[0]
+    return lower, dims, cell, start[:keys + 1], items, bits[:keys], packed, tops
+
+
+@njit(cache=True)
+def size_levels(radius):
+    """Size levels of a grid (:func:`_fill_grid`): the radii at :data:`LEVEL_QUANTILES` and the
+    largest radius, ascending and distinct, mm ((1,) zero for no spheres). Muscle sphere radii
+    vary tenfold (tendon ends to bellies): without levels every query would reach as far as
+    the largest sphere."""
+    if radius.shape[0] == 0:
+        return np.zeros(1)
+    tops = np.empty(len(LEVEL_QUANTILES) + 1)
+    for level in range(len(LEVEL_QUANTILES)):
+        tops[level] = np.quantile(radius, LEVEL_QUANTILES[level])
+    tops[-1] = radius.max()
+    return np.unique(tops)
+
+
+@njit(cache=True, inline="always")
+def _cell_capacity(n):
+    """Most cells a grid over ``n`` spheres gets (8 per sphere, and a few for tiny sets)."""
+    return 8 * n + 64
+
+
+@njit(cache=True)
+def _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, bits, packed,
+               key):
+    """:func:`grid_table` into given arrays, with size levels: no allocation, so a solve can
+    rebuild its grid every iteration (serial: a counting sort of a few 10k spheres takes less
+    than waking a second thread on a busy machine).
+
+    ``tops`` (L,) ascending: a sphere is in the first level ``l`` with ``radius <= tops[l]``
+    (the last level takes the rest; ``tops[-1]`` must be the largest radius). Its key is
+    ``cell * L + l``: a cell's spheres are sorted by level, so a query looks for the spheres of
+    each level only as far as they can reach (:func:`_scan`). ``start`` and ``bits`` are per
+    key (at least ``L *`` :func:`_cell_capacity` ``+ 1`` / ``+ 0`` entries); ``key`` (n,)
+    receives each sphere's key. Non-finite coordinates go to the border cells (they collide
+    with nothing). Returns the cell size used, mm."""
+    n = centres.shape[1]
+    levels = tops.shape[0]
     upper = np.zeros(3)
     for axis in range(3):
-        if n:
-            lower[axis] = centres[axis].min()
-            upper[axis] = centres[axis].max()
-    dims = np.ones(3, dtype=np.int64)
+        lo = np.inf
+        hi = -np.inf
+        for s in range(n):
+            value = centres[axis, s]
+            if np.isfinite(value):
+                lo = min(lo, value)
+                hi = max(hi, value)
+        lower[axis] = lo if lo <= hi else 0.0
+        upper[axis] = hi if lo <= hi else 0.0
     while True:
         for axis in range(3):
             dims[axis] = int((upper[axis] - lower[axis]) / cell) + 1
-        if dims[0] * dims[1] * dims[2] <= 8 * n + 64:
+        if dims[0] * dims[1] * dims[2] <= _cell_capacity(n):
             break
         cell *= 1.26
-    key = np.empty(n, dtype=np.int64)
+    keys = dims[0] * dims[1] * dims[2] * levels
     for s in range(n):
-        ix = min(int((centres[0, s] - lower[0]) / cell), dims[0] - 1)
-        iy = min(int((centres[1, s] - lower[1]) / cell), dims[1] - 1)
-        iz = min(int((centres[2, s] - lower[2]) / cell), dims[2] - 1)
-        key[s] = (ix * dims[1] + iy) * dims[2] + iz
-    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, dtype=np.int64)
+        level = 0
+        while level < levels - 1 and radius[s] > tops[level]:
+            level += 1
+        key[s] = ((_cell_of(centres[0, s], lower[0], cell, dims[0]) * dims[1]
+                   + _cell_of(centres[1, s], lower[1], cell, dims[1])) * dims[2]
+                  + _cell_of(centres[2, s], lower[2], cell, dims[2])) * levels + level
+    for k in range(keys):
+        start[k + 1] = 0
+        bits[k] = 0
+    start[0] = 0
     for s in range(n):
         start[key[s] + 1] += 1
-    for c in range(start.shape[0] - 1):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    items = np.empty(n, dtype=np.int64)
-    bits = np.zeros(start.shape[0] - 1, dtype=np.uint64)
+    for k in range(keys):
+        start[k + 1] += start[k]
+    # the fill pointers run in the (then shifted back) start array itself
     for s in range(n):
-        items[fill[key[s]]] = s
-        fill[key[s]] += 1
+        items[start[key[s]]] = s
+        start[key[s]] += 1
         bits[key[s]] |= _object_bit(objects[s])
-    packed = np.empty((5, n))
+    for k in range(keys, 0, -1):
+        start[k] = start[k - 1]
+    start[0] = 0
     for e in range(n):
         for axis in range(3):
             packed[axis, e] = centres[axis, items[e]]
         packed[3, e] = radius[items[e]]
         packed[4, e] = objects[items[e]]
-    return lower, dims, cell, start, items, bits, packed
+    return cell
+
+
+@njit(cache=True)
+def _move_in_grid(reference, queue, stale, key, start, items, packed, lower, dims, cell,
+                  levels, drift):
+    """Give the spheres ``queue[:stale]`` their new reference positions in the grid without
+    rebuilding it: they stay in their cells, and ``drift[0]`` keeps the farthest any sphere now
+    lies outside its cell (mm; queries reach that much farther)."""
+    for q in range(stale):
+        j = queue[q]
+        k = key[j]
+        for e in range(start[k], start[k + 1]):
+            if items[e] == j:
+                for axis in range(3):
+                    packed[axis, e] = reference[axis, j]
+                break
+        c = k // levels
+        index = (c // (dims[1] * dims[2]), (c // dims[2]) % dims[1], c % dims[2])
+        d2 = 0.0
+        for axis in range(3):
+            lo = lower[axis] + index[axis] * cell
+            out = max(lo - reference[axis, j], reference[axis, j] - lo - cell, 0.0)
+            d2 += out * out
+        drift[0] = max(drift[0], np.sqrt(d2))
+
+
+@njit(cache=True, inline="always")
+def _cell_of(value, lower, cell, dim):
+    """Grid index of a coordinate, clamped to ``[0, dim)``; NaN goes to 0."""
+    t = (value - lower) / cell
+    if not t >= 0.0:
+        return 0
+    if t >= dim - 1:
+        return dim - 1
+    return int(t)
 
 
 @njit(cache=True, inline="always")
@@ -95,44 +204,55 @@ def _object_bit(obj):
 
 
 @njit(cache=True)
-def _scan(i, query, q_radius, q_object, t_top, lower, dims, cell, start, items, bits, packed,
-          skin, out, first, room):
+def _scan(i, query, q_radius, q_object, table, skin, pad, out, first, room, stamp, shared):
     """Targets of another object within ``r_i + r_j + skin`` of query sphere ``i``, written in
     increasing index order to ``out[first:first + room]``; returns how many there are (more
-    than ``room`` means they did not fit). ``t_top``: the largest target radius."""
-    reach = q_radius[i] + t_top + skin
-    x0 = max(int(np.floor((query[0, i] - reach - lower[0]) / cell)), 0)
-    x1 = min(int(np.floor((query[0, i] + reach - lower[0]) / cell)), dims[0] - 1)
-    y0 = max(int(np.floor((query[1, i] - reach - lower[1]) / cell)), 0)
-    y1 = min(int(np.floor((query[1, i] + reach - lower[1]) / cell)), dims[1] - 1)
-    z0 = max(int(np.floor((query[2, i] - reach - lower[2]) / cell)), 0)
-    z1 = min(int(np.floor((query[2, i] + reach - lower[2]) / cell)), dims[2] - 1)
+    than ``room`` means they did not fit). ``table`` as :func:`grid_table`'s (size levels as
+    :func:`_fill_grid`); ``pad`` mm: how far a target may lie outside its cell. With
+    ``shared`` (queries and targets the same spheres, lists owned as :func:`_owns` says) only
+    the targets ``i`` owns are listed, in cell order."""
+    lower, dims, cell, start, items, bits, packed, tops = table
+    levels = tops.shape[0]
     found = 0
     own = _object_bit(q_object[i]) if q_object[i] < 63 else np.uint64(0)
-    for ix in range(x0, x1 + 1):
-        for iy in range(y0, y1 + 1):
-            row = (ix * dims[1] + iy) * dims[2]
-            for c in range(row + z0, row + z1 + 1):
-                if bits[c] == 0 or bits[c] == own:
-                    continue
-                for e in range(start[c], start[c + 1]):
-                    if packed[4, e] == q_object[i]:
+    for level in range(levels):
+        reach = q_radius[i] + tops[level] + skin + pad
+        x0 = max(int(np.floor((query[0, i] - reach - lower[0]) / cell)), 0)
+        x1 = min(int(np.floor((query[0, i] + reach - lower[0]) / cell)), dims[0] - 1)
+        y0 = max(int(np.floor((query[1, i] - reach - lower[1]) / cell)), 0)
+        y1 = min(int(np.floor((query[1, i] + reach - lower[1]) / cell)), dims[1] - 1)
+        z0 = max(int(np.floor((query[2, i] - reach - lower[2]) / cell)), 0)
+        z1 = min(int(np.floor((query[2, i] + reach - lower[2]) / cell)), dims[2] - 1)
+        for ix in range(x0, x1 + 1):
+            for iy in range(y0, y1 + 1):
+                row = (ix * dims[1] + iy) * dims[2]
+                for c in range(row + z0, row + z1 + 1):
+                    k = c * levels + level
+                    if bits[k] == 0 or bits[k] == own:
                         continue
-                    limit = q_radius[i] + packed[3, e] + skin
-                    d2 = 0.0
-                    for axis in range(3):
-                        d2 += (query[axis, i] - packed[axis, e]) ** 2
-                    if d2 < limit * limit:
-                        j = items[e]
-                        if found < room:
-                            # insertion keeps the list sorted: a target object's spheres are then
-                            # contiguous (spheres are numbered object by object)
-                            f = first + found
-                            while f > first and out[f - 1] > j:
-                                out[f] = out[f - 1]
-                                f -= 1
-                            out[f] = j
-                        found += 1
+                    for e in range(start[k], start[k + 1]):
+                        if packed[4, e] == q_object[i]:
+                            continue
+                        limit = q_radius[i] + packed[3, e] + skin
+                        d2 = 0.0
+                        for axis in range(3):
+                            d2 += (query[axis, i] - packed[axis, e]) ** 2
+                        if d2 < limit * limit:
+                            j = items[e]
+                            if shared:
+                                if not _owns(i, j, stamp):
+                                    continue
+                                if found < room:
+                                    out[first + found] = j
+                            elif found < room:
+                                # insertion keeps the list sorted: a target object's spheres
+                                # are then contiguous (spheres are numbered object by object)
+                                f = first + found
+                                while f > first and out[f - 1] > j:
+                                    out[f] = out[f - 1]
+                                    f -= 1
+                                out[f] = j
+                            found += 1
     return found
 
 
@@ -142,20 +262,18 @@ def candidate_lists(query, q_radius, q_object, table, skin):
     ``r_i + r_j + skin`` mm: ``(begin (nq,), end (nq,), idx)``, sphere ``i``'s list being
     ``idx[begin[i]:end[i]]`` in increasing index order; ``table`` from :func:`grid_table` of
     the targets."""
-    lower, dims, cell, start, items, bits, packed = table
     nq = query.shape[1]
-    t_top = packed[3].max() if packed.shape[1] else 0.0
     counts = np.zeros(nq + 1, dtype=np.int64)
     none = np.empty(0, dtype=np.int64)
     for i in prange(nq):
-        counts[i + 1] = _scan(i, query, q_radius, q_object, t_top, lower, dims, cell, start,
-                              items, bits, packed, skin, none, 0, 0)
+        counts[i + 1] = _scan(i, query, q_radius, q_object, table, skin, 0.0, none, 0, 0, none,
+                              False)
     for i in range(nq):
         counts[i + 1] += counts[i]
     idx = np.empty(counts[nq], dtype=np.int64)
     for i in prange(nq):
-        _scan(i, query, q_radius, q_object, t_top, lower, dims, cell, start, items, bits, packed,
-              skin, idx, counts[i], counts[i + 1] - counts[i])
+        _scan(i, query, q_radius, q_object, table, skin, 0.0, idx, counts[i],
+              counts[i + 1] - counts[i], counts, False)
     return counts[:-1].copy(), counts[1:].copy(), idx
 
 
@@ -167,16 +285,14 @@ def refresh_own_lists(query, q_radius, q_object, table, skin, built, begin, end,
     slots ``idx[i * room:(i + 1) * room]``; ``built`` (3, nq) holds the positions at the last
     build. ``longest`` (nq,) work array. Returns the largest list length found (above
     ``room``: rebuild with more room)."""
-    lower, dims, cell, start, items, bits, packed = table
-    t_top = packed[3].max() if packed.shape[1] else 0.0
     for i in prange(query.shape[1]):
         longest[i] = 0
         d2 = 0.0
         for axis in range(3):
             d2 += (query[axis, i] - built[axis, i]) ** 2
         if d2 > 0.25 * skin * skin:
-            found = _scan(i, query, q_radius, q_object, t_top, lower, dims, cell, start, items,
-                          bits, packed, skin, idx, i * room, room)
+            found = _scan(i, query, q_radius, q_object, table, skin, 0.0, idx, i * room, room,
+                          begin, False)
             for axis in range(3):
                 built[axis, i] = query[axis, i]
             begin[i] = i * room
@@ -198,36 +314,44 @@ def list_contacts(centres, radius, fixed, begin, end, idx, t_centres, t_radius, 
     particle.
     """
     for i in prange(centres.shape[1]):
-        count = 0
-        deepest = 0.0
-        best_pen = 0.0
-        best = -1
-        bx = by = bz = 0.0
-        for e in range(begin[i], end[i] + 1):
-            j = idx[e] if e < end[i] else -1
-            if best >= 0 and (j < 0 or t_object[j] != t_object[best]):
-                share = push_share(fixed[i], t_moves[best]) * best_pen
-                disp[0, i] += share * bx
-                disp[1, i] += share * by
-                disp[2, i] += share * bz
-                best = -1
-                best_pen = 0.0
-            if j < 0:
-                break
-            pen, nx, ny, nz = sphere_push(centres[0, i], centres[1, i], centres[2, i], radius[i],
-                                          t_centres[0, j], t_centres[1, j], t_centres[2, j],
-                                          t_radius[j], i < j or not same_set)
-            if pen > 0.0:
-                collided[i] = 1
-                if deeper(pen, j, best_pen, best if best >= 0 else j + 1):
-                    best_pen = pen
-                    best = j
-                    bx, by, bz = nx, ny, nz
-                if j > i or not same_set:
-                    count += 1
-                    deepest = max(deepest, pen)
-        pair_count[i] = count
-        pair_pen[i] = deepest
+        _contact(i, centres, radius, fixed, begin[i], end[i], idx, t_centres, t_radius,
+                 t_object, t_moves, same_set, disp, collided, pair_count, pair_pen)
+
+
+@njit(cache=True, inline="always")
+def _contact(i, centres, radius, fixed, first, last, idx, t_centres, t_radius, t_object,
+             t_moves, same_set, disp, collided, pair_count, pair_pen):
+    """:func:`list_contacts` for sphere ``i`` and its candidates ``idx[first:last]``."""
+    count = 0
+    deepest = 0.0
+    best_pen = 0.0
+    best = -1
+    bx = by = bz = 0.0
+    for e in range(first, last + 1):
+        j = idx[e] if e < last else -1
+        if best >= 0 and (j < 0 or t_object[j] != t_object[best]):
+            share = push_share(fixed[i], t_moves[best]) * best_pen
+            disp[0, i] += share * bx
+            disp[1, i] += share * by
+            disp[2, i] += share * bz
+            best = -1
+            best_pen = 0.0
+        if j < 0:
+            break
+        pen, nx, ny, nz = sphere_push(centres[0, i], centres[1, i], centres[2, i], radius[i],
+                                      t_centres[0, j], t_centres[1, j], t_centres[2, j],
+                                      t_radius[j], i < j or not same_set)
+        if pen > 0.0:
+            collided[i] = 1
+            if deeper(pen, j, best_pen, best if best >= 0 else j + 1):
+                best_pen = pen
+                best = j
+                bx, by, bz = nx, ny, nz
+            if j > i or not same_set:
+                count += 1
+                deepest = max(deepest, pen)
+    pair_count[i] = count
+    pair_pen[i] = deepest
 
 
 @njit(cache=True)
@@ -248,6 +372,207 @@ def list_pairs(centres, radius, begin, end, idx, t_centres, t_radius, same_set):
                 hits[n, 1] = j
                 n += 1
     return hits[:n].copy()
+
+
+@njit(cache=True, inline="always")
+def _owns(i, j, stamp):
+    """Whether the pair (i, j) of muscle spheres is tested from ``i``'s list: the list refreshed
+    last (``stamp``: refresh number of each list; ties, lists refreshed together: the lower
+    index). That list was built from the other sphere's current reference position."""
+    return stamp[i] > stamp[j] or (stamp[i] == stamp[j] and i < j)
+
+
+def muscle_lists(radius, room: int = INITIAL_ROOM) -> tuple:
+    """The state of :func:`muscle_contacts` for the muscle spheres of radii ``radius`` (m,) mm,
+    every list stale.
+
+    ``(reference (3, m) mm, stamp (m,), clock (1,), queue (m,), count (m,), slot (m + 1,),
+    idx int32, hit int32, hits (m,), grid_cell (1,), drift (1,), lower (3,), dims (3,), start,
+    items (m,), bits, packed (5, m), tops (L,), key (m,), begin (m,), end (m,), partner)``:
+    sphere ``i``'s list is ``idx[slot[i]:slot[i] + count[i]]`` (room up to ``slot[i + 1]``),
+    built when it stood at ``reference[:, i]`` (refresh number ``stamp[i]``, the last being
+    ``clock[0]``); the ``hits[i]`` colliding pairs it owns are listed at the same place in
+    ``hit``; the grid of the reference positions as :func:`_fill_grid` makes it (cell
+    ``grid_cell[0]`` mm, size levels ``tops``), its spheres up to ``drift[0]`` mm outside
+    their cells; the colliding partners of sphere ``i`` are ``partner[begin[i]:end[i]]``.
+    """
+    radius = np.asarray(radius, dtype=np.float64)
+    count = len(radius)
+    tops = size_levels(radius)
+    keys = int(_cell_capacity(count)) * len(tops)
+    return (np.full((3, count), np.inf), np.zeros(count, np.int64), np.zeros(1, np.int64),
+            np.zeros(count, np.int64), np.zeros(count, np.int64),
+            np.arange(count + 1, dtype=np.int64) * room, np.zeros(count * room, np.int32),
+            np.zeros(count * room, np.int32), np.zeros(count, np.int64), np.zeros(1),
+            np.full(1, np.inf), np.zeros(3), np.ones(3, np.int64),
+            np.zeros(keys + 1, np.int64), np.zeros(count, np.int64), np.zeros(keys, np.uint64),
+            np.zeros((5, count)), tops, np.zeros(count, np.int64), np.zeros(count, np.int64),
+            np.zeros(count, np.int64), np.zeros(count, np.int64))
+
+
+@njit(cache=True)
+def _stale_spheres(centres, reference, limit, stamp, clock, queue):
+    """Spheres farther than ``limit`` mm from their reference position, into ``queue``; they
+    get the current position as reference and a new refresh number. Returns how many."""
+    stale = 0
+    for i in range(centres.shape[1]):
+        d2 = 0.0
+        for axis in range(3):
+            d2 += (centres[axis, i] - reference[axis, i]) ** 2
+        if d2 > limit * limit:
+            queue[stale] = i
+            stale += 1
+    if stale:
+        clock[0] += 1
+    for q in range(stale):
+        i = queue[q]
+        for axis in range(3):
+            reference[axis, i] = centres[axis, i]
+        stamp[i] = clock[0]
+    return stale
+
+
+@njit(cache=True, parallel=True)
+def _refresh_lists(reference, radius, muscle, table, skin, pad, stamp, queue, stale, count,
+                   slot, idx):
+    """New lists for the spheres ``queue[:stale]`` from the grid ``table`` of the reference
+    positions; returns how many did not fit their room (they come first in ``queue`` then)."""
+    for q in prange(stale):
+        i = queue[q]
+        count[i] = _scan(i, reference, radius, muscle, table, skin + ROUNDING_GUARD, pad, idx,
+                         slot[i], slot[i + 1] - slot[i], stamp, True)
+    over = 0
+    for q in range(stale):
+        i = queue[q]
+        if count[i] > slot[i + 1] - slot[i]:
+            queue[over] = i
+            over += 1
+    return over
+
+
+@njit(cache=True, parallel=True)
+def _relaid(count, slot, idx):
+    """``(slot, idx, hit)`` with room for twice each list (and a few more), the lists that fit
+    their old room copied over (the others are rebuilt next)."""
+    n = count.shape[0]
+    grown = np.empty(n + 1, dtype=np.int64)
+    grown[0] = 0
+    for i in range(n):
+        grown[i + 1] = grown[i] + 2 * count[i] + 4
+    pool = np.zeros(grown[n], dtype=idx.dtype)
+    for i in prange(n):
+        if count[i] <= slot[i + 1] - slot[i]:
+            for k in range(count[i]):
+                pool[grown[i] + k] = idx[slot[i] + k]
+    return grown, pool, np.zeros(grown[n], dtype=idx.dtype)
+
+
+@njit(cache=True)
+def _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end, partner, disp,
+             collided, pair_count, pair_pen):
+    """:func:`list_contacts` on the colliding pairs ``hit`` found by their owners: each sphere
+    gets its colliding partners ``partner[begin[i]:end[i]]`` in increasing index order and the
+    same response. Serial: a few thousand pairs. Returns ``partner`` (grown when too short)."""
+    n = hits.shape[0]
+    total = 0
+    for i in range(n):
+        pair_count[i] = 0
+        pair_pen[i] = 0.0
+        end[i] = hits[i]
+    for i in range(n):
+        for e in range(slot[i], slot[i] + hits[i]):
+            end[hit[e]] += 1
+        total += 2 * hits[i]
+    if total > partner.shape[0]:
+        partner = np.empty(2 * total, dtype=np.int64)
+    total = 0
+    for i in range(n):
+        begin[i] = total
+        total += end[i]
+        end[i] = begin[i]
+    for i in range(n):
+        for e in range(slot[i], slot[i] + hits[i]):
+            j = hit[e]
+            partner[end[i]] = j
+            end[i] += 1
+            partner[end[j]] = i
+            end[j] += 1
+    for i in range(n):
+        if end[i] > begin[i]:
+            for f in range(begin[i] + 1, end[i]):
+                j = partner[f]
+                g = f
+                while g > begin[i] and partner[g - 1] > j:
+                    partner[g] = partner[g - 1]
+                    g -= 1
+                partner[g] = j
+            _contact(i, centres, radius, fixed, begin[i], end[i], partner, centres, radius,
+                     muscle, moves, True, disp, collided, pair_count, pair_pen)
+    return partner
+
+
+@njit(cache=True, parallel=True)
+def muscle_contacts(centres, radius, muscle, fixed, moves, skin, cell, lists, disp, collided,
+                    pair_count, pair_pen):
+    """Muscle-muscle collisions of one iteration with lists refreshed sphere by sphere.
+
+    A sphere's list holds the spheres of other muscles within ``r_i + r_j + skin`` of it, both
+    taken at their *reference* positions (where each stood when its own list was last
+    refreshed); a pair is tested from the list of the sphere refreshed last (:func:`_owns`),
+    which always holds it when the two are that close. A sphere refreshes its list when it has
+    moved more than ``skin / 2`` from its reference position; the others keep theirs. So any
+    two spheres are at most ``skin`` closer than at their reference positions, and a pair
+    missing from its owner's list cannot collide: the pairs found are exactly those of a brute
+    force test, while only the spheres that moved (near tendon attachments, say) pay for a
+    grid query. The grid of reference positions is rebuilt in place (:func:`_fill_grid`)
+    whenever a list is refreshed.
+
+    ``centres`` (3, m) mm, ``radius`` (m,) mm, ``muscle`` (m,), ``fixed`` (m,) bool, ``moves``
+    (m,) bool (free), ``skin`` mm, ``cell`` grid cell mm (:func:`muscle_cell`), ``lists`` from
+    :func:`muscle_lists`; ``disp``, ``collided``, ``pair_count``, ``pair_pen`` as
+    :func:`list_contacts` fills them (the same response, bit for bit). Returns ``(spheres
+    refreshed, lists)``: keep the returned lists (lists that outgrew their room got more).
+    """
+    (reference, stamp, clock, queue, count, slot, idx, hit, hits, grid_cell, drift, lower, dims,
+     start, items, bits, packed, tops, key, begin, end, partner) = lists
+    n = centres.shape[1]
+    if n == 0:
+        return 0, lists
+    stale = _stale_spheres(centres, reference, 0.5 * skin, stamp, clock, queue)
+    if stale:
+        if not drift[0] <= DRIFT_FRACTION * grid_cell[0]:
+            grid_cell[0] = _fill_grid(reference, radius, muscle, tops, cell, lower, dims, start,
+                                      items, bits, packed, key)
+            drift[0] = 0.0
+        else:
+            _move_in_grid(reference, queue, stale, key, start, items, packed, lower, dims,
+                          grid_cell[0], tops.shape[0], drift)
+        table = (lower, dims, grid_cell[0], start, items, bits, packed, tops)
+        over = _refresh_lists(reference, radius, muscle, table, skin, drift[0], stamp, queue,
+                              stale, count, slot, idx)
+        if over:
+            slot, idx, hit = _relaid(count, slot, idx)
+            _refresh_lists(reference, radius, muscle, table, skin, drift[0], stamp, queue,
+                           over, count, slot, idx)
+    # the exact tests, each pair from its owner's list; the colliding partners go to
+    # hit[slot[i]:slot[i] + hits[i]]
+    for i in prange(n):
+        found = slot[i]
+        for e in range(slot[i], slot[i] + count[i]):
+            j = idx[e]
+            if _owns(i, j, stamp):
+                pen, nx, ny, nz = sphere_push(centres[0, i], centres[1, i], centres[2, i],
+                                              radius[i], centres[0, j], centres[1, j],
+                                              centres[2, j], radius[j], True)
+                if pen > 0.0:
+                    hit[found] = j
+                    found += 1
+        hits[i] = found - slot[i]
+    partner = _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end,
+                       partner, disp, collided, pair_count, pair_pen)
+    return stale, (reference, stamp, clock, queue, count, slot, idx, hit, hits, grid_cell,
+                   drift, lower, dims, start, items, bits, packed, tops, key, begin, end,
+                   partner)
 
 
 def skin_width(spheres: Spheres) -> float:

@@ -207,3 +207,102 @@ def test_bone_spheres_refuse_bad_surfaces():
         bone_spheres(pts, tris, 0.0)
     with pytest.raises(MuscleMSSError, match="missing points"):
         bone_spheres(pts, tris + len(pts), 2.0)
+
+
+def response_of_lists(x, spheres, begin, end, idx):
+    """The response list_contacts gives from candidate lists (muscle-muscle)."""
+    n = spheres.count
+    out = (np.zeros((3, n)), np.zeros(n, np.uint8), np.zeros(n, np.int64), np.zeros(n))
+    spatial_hash.list_contacts(x, spheres.radius, spheres.fixed, begin, end, idx, x,
+                               spheres.radius, spheres.muscle, ~spheres.fixed, True, *out)
+    return out
+
+
+def incremental_step(x, spheres, skin, lists):
+    n = spheres.count
+    out = (np.zeros((3, n)), np.zeros(n, np.uint8), np.zeros(n, np.int64), np.zeros(n))
+    refreshed, lists = spatial_hash.muscle_contacts(
+        x, spheres.radius, spheres.muscle, spheres.fixed, ~spheres.fixed, skin,
+        spatial_hash.muscle_cell(spheres, skin), lists, *out)
+    return refreshed, lists, out
+
+
+@pytest.mark.parametrize("room", [64, 1])
+def test_lists_refreshed_sphere_by_sphere_find_the_brute_force_pairs_while_spheres_move(room):
+    # jitter below the skin, a few far jumps, fixed spheres, a step without motion; room 1
+    # makes every list outgrow its room (relaid pool); the response is list_contacts' bit for bit
+    centres, spheres = random_cloud(3)
+    n = spheres.count
+    skin = 0.8
+    rng = np.random.default_rng(4)
+    x = np.ascontiguousarray(centres.T)
+    lists = spatial_hash.muscle_lists(spheres.radius, room)
+    refreshed_counts = []
+    for step in range(8):
+        refreshed, lists, got = incremental_step(x, spheres, skin, lists)
+        refreshed_counts.append(refreshed)
+        want_pairs = brute_force_pairs(x.T, spheres)[0]
+        table = spatial_hash.grid_table(x, spheres.radius, 3.0, spheres.muscle)
+        begin, end, idx = spatial_hash.candidate_lists(x, spheres.radius, spheres.muscle,
+                                                       table, 0.0)
+        want = response_of_lists(x, spheres, begin, end, idx)
+        assert got[2].sum() == len(want_pairs) > 50
+        for a, b in zip(got, want):
+            assert np.array_equal(a, b)
+        first, last, partner = lists[-3:]
+        pairs = [(i, j) for i in range(n) for j in partner[first[i]:last[i]] if i < j]
+        assert pairs == [tuple(p) for p in want_pairs.tolist()]
+        move = rng.normal(scale=0.15, size=x.shape)
+        move[:, rng.choice(n, 20, replace=False)] += rng.normal(scale=4.0, size=(3, 20))
+        if step == 4:
+            move[:] = 0.0
+        move[:, spheres.fixed] = 0.0
+        x = np.ascontiguousarray(x + move)
+    assert refreshed_counts[0] == n and refreshed_counts[5] == 0
+    assert 0 < min(refreshed_counts[1:5]) and max(refreshed_counts[1:]) < n
+
+
+def test_a_pair_approached_by_exactly_half_the_skin_each_is_found():
+    # two spheres start exactly r_i + r_j + skin apart (as rounded) and each moves exactly
+    # skin / 2 towards the other: neither list is refreshed, and rounding leaves them
+    # overlapping by 2e-16 mm; the list reach must not lose that pair
+    skin = 1.0
+    a = 0.4097352393619469
+    spheres = mss.make_spheres([1.0, 1.0], [0, 1], [False, False], [True, True])
+    x = np.array([[a, a + 3.0], [0.0, 0.0], [0.0, 0.0]])
+    lists = spatial_hash.muscle_lists(spheres.radius)
+    _, lists, out = incremental_step(x, spheres, skin, lists)
+    assert out[2].sum() == 0
+    x = np.array([[a + 0.5, a + 3.0 - 0.5], [0.0, 0.0], [0.0, 0.0]])
+    refreshed, lists, out = incremental_step(x, spheres, skin, lists)
+    assert refreshed == 0 and out[2].sum() == 1 and out[1].all()
+
+
+def test_no_muscle_spheres_and_one_lone_sphere():
+    for radius in ([], [1.0]):
+        spheres = mss.make_spheres(radius, np.zeros(len(radius), int),
+                                   np.zeros(len(radius), bool), np.ones(len(radius), bool))
+        lists = spatial_hash.muscle_lists(spheres.radius)
+        refreshed, lists, out = incremental_step(np.zeros((3, len(radius))), spheres, 0.5,
+                                                 lists)
+        assert refreshed == len(radius) and out[2].sum() == 0
+
+
+def test_non_finite_centres_collide_with_nothing_and_do_not_spoil_the_grid():
+    centres, spheres = random_cloud(6)
+    centres = centres.copy()
+    centres[0] = np.nan
+    centres[1] = [np.inf, 0.0, 0.0]
+    centres[2] = [-np.inf, np.inf, 5.0]
+    with np.errstate(invalid="ignore"):
+        want = brute_force_pairs(centres, spheres)
+    got = spatial_hash.colliding_pairs(centres, spheres)
+    assert len(want[0]) > 50
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_size_levels_split_wide_radius_ranges():
+    radius = np.concatenate([np.full(60, 1.0), np.full(35, 3.0), np.full(5, 10.0)])
+    assert np.array_equal(spatial_hash.size_levels(radius), [1.0, 3.0, 10.0])
+    assert np.array_equal(spatial_hash.size_levels(np.full(5, 2.0)), [2.0])
+    assert np.array_equal(spatial_hash.size_levels(np.zeros(0)), [0.0])
