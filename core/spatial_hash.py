@@ -33,9 +33,12 @@ from numba import njit, prange
 from .mss import Spheres, deeper, push_share, sphere_push
 
 # Skin of the candidate lists as a fraction of the mean muscle sphere radius: longer lists
-# against more refreshes. On the paper's workload lists refreshed sphere by sphere cost about
-# the same from 0.5 to 1.5; lists rebuilt all at once (candidate_lists) need the wide skin.
+# against more refreshes. Lists rebuilt all at once whenever any sphere moved (candidate_lists)
+# need the wide skin (N = 20: 32 rebuilds at 1.5, 499 at 0.75); lists refreshed sphere by sphere
+# (muscle_contacts, refresh_own_lists) are fastest near 0.75 (N = 80: muscle CD 1.3-1.6 s
+# against 1.8-2.2 s at 1.5).
 SKIN_FRACTION = 1.5
+PER_SPHERE_SKIN_FRACTION = 0.75
 # Radius quantiles that split the spheres of a grid into size levels (:func:`size_levels`).
 LEVEL_QUANTILES = (0.5, 0.9)
 # The muscle grid is rebuilt when a sphere lies this many cells outside its cell.
@@ -576,9 +579,11 @@ def muscle_contacts(centres, radius, muscle, fixed, moves, skin, cell, lists, di
                    partner)
 
 
-def skin_width(spheres: Spheres) -> float:
-    """Skin of the candidate lists, mm (:data:`SKIN_FRACTION` of the mean muscle radius)."""
-    return SKIN_FRACTION * float(spheres.radius.mean()) if spheres.count else 0.0
+def skin_width(spheres: Spheres, per_sphere: bool = False) -> float:
+    """Skin of the candidate lists, mm: :data:`SKIN_FRACTION` of the mean muscle radius, or
+    :data:`PER_SPHERE_SKIN_FRACTION` for lists that every sphere refreshes on its own."""
+    fraction = PER_SPHERE_SKIN_FRACTION if per_sphere else SKIN_FRACTION
+    return fraction * float(spheres.radius.mean()) if spheres.count else 0.0
 
 
 def bone_cell(spheres: Spheres, skin: float) -> float:
