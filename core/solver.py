@@ -222,20 +222,6 @@ def _gather(x, particle, centres, disp, collided):
         collided[g] = 0
 
 
-@njit(cache=True, parallel=True)
-def _moved_too_far(centres, built, limit, far):
-    """Whether a sphere moved more than ``limit`` mm since the candidate lists were built."""
-    for s in prange(centres.shape[1]):
-        d2 = 0.0
-        for axis in range(3):
-            d2 += (centres[axis, s] - built[axis, s]) ** 2
-        far[s] = d2 > limit * limit
-    for s in range(centres.shape[1]):
-        if far[s]:
-            return True
-    return False
-
-
 @njit(cache=True)
 def _tally(pair_count, pair_pen):
     count = 0
@@ -272,10 +258,9 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
      runs_int, runs_param, lane_rest, run_ptr, scattered_int, scattered_param,
      scattered_ptr) = mss
     (particle, radius, muscle, fixed, moves, centres, disp, collided, pair_count,
-     pair_pen, far) = spheres
+     pair_pen) = spheres
     (bone_centres, bone_radius, bone_object, bone_moves, bone_table, muscle_cell, skin,
-     mm_built, mb_built, longest, mm_begin, mm_end, mm_idx, mb_begin, mb_end, mb_idx,
-     room) = hashed
+     mb_built, longest, mm_lists, mb_begin, mb_end, mb_idx, room) = hashed
     (b_centres, b_radius, b_fixed, perm, b_scratch, object_first, static, node_int, node_box,
      node_stamp, stack, state, best_pen, best_dir, best_partner, touched, n_muscles, max_depth,
      min_primitives, no_pairs, n_pairs) = bvh
@@ -317,15 +302,10 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
                 deepest = max(deepest, pen)
         else:
             if muscle_muscle:
-                if _moved_too_far(centres, mm_built, 0.5 * skin, far):
-                    rebuilds += 1
-                    mm_built[:, :] = centres
-                    table = spatial_hash.grid_table(centres, radius, muscle_cell, muscle)
-                    mm_begin, mm_end, mm_idx = spatial_hash.candidate_lists(
-                        centres, radius, muscle, table, skin)
-                spatial_hash.list_contacts(centres, radius, fixed, mm_begin, mm_end, mm_idx,
-                                           centres, radius, muscle, moves, True, disp, collided,
-                                           pair_count, pair_pen)
+                refreshed, mm_lists = spatial_hash.muscle_contacts(
+                    centres, radius, muscle, fixed, moves, skin, muscle_cell, mm_lists, disp,
+                    collided, pair_count, pair_pen)
+                rebuilds += refreshed
                 mm_count, deepest = _tally(pair_count, pair_pen)
             t2 = now()
             if muscle_bone:
@@ -370,7 +350,7 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
         if status == RUNNING and termination == 2 and seconds[it] >= budget:
             status = OUT_OF_TIME
         it += 1
-    return status, it, bad, rebuilds, mm_begin, mm_end, mm_idx, mb_begin, mb_end, mb_idx, room
+    return status, it, bad, rebuilds, mm_lists, mb_begin, mb_end, mb_idx, room
 
 
 # ---- the driver ------------------------------------------------------------------------------
@@ -438,7 +418,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     sphere_state = (spheres.particle, spheres.radius, spheres.muscle, spheres.fixed,
                     ~spheres.fixed, np.zeros((3, ns)), np.zeros((3, ns + nb)),
                     np.zeros(ns + nb, dtype=np.uint8), np.zeros(ns, dtype=np.int64),
-                    np.zeros(ns), np.zeros(ns, dtype=np.uint8))
+                    np.zeros(ns))
     hashed = _hash_state(spheres, settings.structure == "spatial hash")
     bvh = _bvh_state(spheres, settings)
 
@@ -458,12 +438,12 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     chunk = 1
     status = RUNNING
     rebuilds = 0
-    lists = hashed[-7:]
+    lists = hashed[-5:]
     while done < cap and status == RUNNING:
         before = done
         tick = time.perf_counter()
         status, done, bad, more, *lists = _solve_chunk(
-            mss, sphere_state, hashed[:-7] + tuple(lists), bvh, history, control, done,
+            mss, sphere_state, hashed[:-5] + tuple(lists), bvh, history, control, done,
             min(cap, done + chunk), started)
         rebuilds += more
         per_iteration = (time.perf_counter() - tick) / max(done - before, 1)
@@ -496,9 +476,10 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
 
 def _hash_state(spheres: Spheres, used: bool) -> tuple:
     """The spatial hash's arrays for the kernel: the bone table is built here once (bones do
-    not move during a solve); the candidate lists in the first iteration."""
+    not move during a solve); the candidate lists in the first iteration (muscle-muscle lists
+    then refreshed sphere by sphere, :func:`spatial_hash.muscle_contacts`)."""
     ns = spheres.count
-    skin = spatial_hash.skin_width(spheres)
+    skin = spatial_hash.skin_width(spheres, per_sphere=True)
     bone_object = spheres.bone + spheres.n_muscles
     centres = spheres.bone_centres if used else np.zeros((3, 0))
     table = spatial_hash.grid_table(centres, spheres.bone_radius if used else np.zeros(0),
@@ -509,9 +490,9 @@ def _hash_state(spheres: Spheres, used: bool) -> tuple:
     return (spheres.bone_centres, spheres.bone_radius, bone_object,
             np.zeros(len(spheres.bone_radius), dtype=np.bool_), table,
             spatial_hash.muscle_cell(spheres, skin), skin, np.full((3, ns), np.inf),
-            np.full((3, ns), np.inf), np.zeros(ns, dtype=np.int64),
-            empty, empty.copy(), np.zeros(0, np.int64),
-            empty.copy(), empty.copy(), np.zeros(ns * room, np.int64), room)
+            np.zeros(ns, dtype=np.int64),
+            spatial_hash.muscle_lists(spheres.radius if used else np.zeros(0)),
+            empty, empty.copy(), np.zeros(ns * room, np.int64), room)
 
 
 def _bvh_state(spheres: Spheres, settings: SolverSettings) -> tuple:
