@@ -28,7 +28,6 @@ bitwise the same result on the same machine, whatever the thread count.
 """
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -42,10 +41,6 @@ from .mss import (Spheres, VolumeCages, lattice_order, make_spheres, mss_step, n
                   spring_layout)
 from .volume import signed_volume
 
-# OpenMP threads that spin while waiting starve the working thread when the cores are shared
-# (other processes, the ParaView GUI): a solve of the small demo took 24 s instead of 2 s on a
-# busy 2-core machine. Must be set before the first parallel kernel runs; a user's value wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 TERMINATIONS = ("iterations", "displacement threshold", "time budget")
 STRUCTURES = ("spatial hash", "octree BVH")
