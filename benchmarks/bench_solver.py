@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import platform
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,10 +25,10 @@ import numpy as np
 from muscle_mss.core import solver as S
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_scene import demo_scene
-from muscle_mss.filters import FibreResampler, RigidPoseTransform, SpringBuilder
-from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block
-from muscle_mss.filters.scene_io import scene_to_vtk
 from muscle_mss.filters import vtk_arrays as V
+from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block
+from muscle_mss.filters.motion_run import build_pipeline, update_at
+from muscle_mss.filters.scene_io import write_scene
 
 PAPER = {20: (18.66, 8.15, 30.03, 56.84), 40: (39.97, 13.50, 37.43, 90.90),
          60: (60.53, 24.00, 56.03, 140.56), 80: (80.70, 29.53, 67.10, 177.33)}
@@ -45,25 +46,16 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
-def posed_workload(scene, n):
-    muscles, fibres, bones, motion = scene_to_vtk(scene)
-    resampler = FibreResampler()
-    resampler.SetInputDataObject(0, fibres)
-    resampler.SetParticlesPerFibre(n + 1)
-    resampler.SetRandomise(True)
-    builder = SpringBuilder()
-    builder.SetInputConnection(0, resampler.GetOutputPort())
-    builder.SetInputDataObject(1, muscles)
-    pose = RigidPoseTransform()
-    pose.SetInputConnection(0, builder.GetOutputPort())
-    pose.SetInputDataObject(1, bones)
-    pose.SetInputDataObject(2, motion)
-    pose.UpdateTimeStep(float(scene.motion.times[len(scene.motion.times) // 3]))
-    blocks = V.blocks(pose.GetOutputDataObject(0))
+def posed_workload(scene_folder, time_point, n):
+    """The solver's inputs at ``time_point`` from the real pipeline (motion_run's wiring: the
+    Spring Builder clears radii of the bones), with the paper's bone sphere counts."""
+    pipeline = build_pipeline(scene_folder, {"ParticlesPerFibre": n + 1, "Randomise": True})
+    blocks = V.blocks(update_at(pipeline.pose, 0, time_point))
+    posed_bones = update_at(pipeline.pose, 1, time_point)
     model = MSSCollisionSolver._model([b for b, _ in blocks],
                                       [_muscle_block(name, block) for name, block in blocks])
     centres, radii, ids = [], [], []
-    for k, (name, bone) in enumerate(V.blocks(pose.GetOutputDataObject(1))):
+    for k, (name, bone) in enumerate(V.blocks(posed_bones)):
         c, r = bone_spheres(V.points_of(bone), V.triangles_of(bone), count=BONE_COUNTS[name])
         centres.append(c), radii.append(r), ids.append(np.full(len(c), k))
     return model, (np.concatenate(centres), np.concatenate(radii), np.concatenate(ids))
@@ -71,9 +63,12 @@ def posed_workload(scene, n):
 
 def main(sizes):
     scene = demo_scene("full")
+    folder = tempfile.mkdtemp(prefix="bench_scene_")
+    write_scene(scene, folder)
+    time_point = float(scene.motion.times[len(scene.motion.times) // 3])
     rows = []
     for n in sizes:
-        model, bones = posed_workload(scene, n)
+        model, bones = posed_workload(folder, time_point, n)
         prepared = S.prepare(model)
         per_muscle = int(np.diff(model.offsets)[0])
         boundary = int(model.boundary.sum() / len(model.names))
