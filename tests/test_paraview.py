@@ -51,6 +51,19 @@ def test_plugin_builder_gives_the_venv_chain_numbers_and_time_moves_the_pose(
         for name, block in V.blocks(surfaces):
             np.testing.assert_allclose(pv[f"surfaces/{k}/{name}"], V.points_of(block),
                                        rtol=0, atol=1e-9, err_msg=f"{name} at t={t}")
+    for key, algorithm in (("particles", venv_chain.resampler), ("model", venv_chain.springs)):
+        algorithm.Update()
+        for name, block in V.blocks(algorithm.GetOutputDataObject(0)):
+            np.testing.assert_array_equal(pv[f"{key}/{name}/points"], V.points_of(block))
+            arrays = V.point_arrays(block)
+            assert {k.split("/")[-1] for k in pv.files if k.startswith(f"{key}/{name}/point/")} \
+                == set(arrays)
+            for array, values in arrays.items():
+                np.testing.assert_array_equal(pv[f"{key}/{name}/point/{array}"], values,
+                                              err_msg=f"{key} {name} {array}")
+    for name, block in V.blocks(venv_chain.springs.GetOutputDataObject(0)):
+        np.testing.assert_array_equal(pv[f"model/{name}/cell/rest_length"],
+                                      V.cell_array(block, "rest_length"))
     moved = [np.abs(pv[f"bones/1/{b}"] - pv[f"bones/0/{b}"]).max() for b in small_scene.bones]
     assert max(moved) > 10.0  # mm: the femur and tibia swing between the two times
 

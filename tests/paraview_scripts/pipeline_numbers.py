@@ -1,5 +1,6 @@
 """pvpython: build the pipeline with the plugin's builder, update it at the given times, and save
-the deformed surfaces' points and the posed bones' points per time to an .npz file.
+the deformed surfaces' points and the posed bones' points per time, and the Fibre Resampler's and
+Spring Builder's output arrays, to an .npz file.
 Arguments: SCENE OUT.npz TIME [TIME ...]. Prints RESULT with the TimestepValues."""
 import json
 import sys
@@ -20,6 +21,16 @@ for k, t in enumerate(times):
         data = proxy.GetClientSideObject().GetOutputDataObject(port)
         for name, block in V.blocks(data):
             arrays[f"{key}/{k}/{name}"] = V.points_of(block)
+for key, proxy in (("particles", p["Fibre Resampler"]), ("model", p["Spring Builder"])):
+    proxy.UpdatePipeline()
+    for name, block in V.blocks(proxy.GetClientSideObject().GetOutputDataObject(0)):
+        arrays[f"{key}/{name}/points"] = V.points_of(block)
+        for array, values in V.point_arrays(block).items():
+            arrays[f"{key}/{name}/point/{array}"] = values
+        for array in ("rest_length", "stiffness"):
+            values = V.cell_array(block, array, required=False)
+            if values is not None:
+                arrays[f"{key}/{name}/cell/{array}"] = values
 np.savez(out, **arrays)
 print("RESULT " + json.dumps({
     "timesteps": list(p["Rigid Pose Transform"].TimestepValues),
