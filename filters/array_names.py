@@ -36,3 +36,5 @@ BONE_NAMES = "bone_names"            # string x B, order of the bone_weights com
 REST_VOLUME = "rest_volume"          # float64, mm^3 (Volume-Error Probe)
 VOLUME = "volume"                    # float64, mm^3
 VOLUME_ERROR_PCT = "volume_error_pct"  # float64, %
+PROJECTION_PASSES = "projection_passes"  # float64, collision passes after the last iteration
+REMAINING_PENETRATION = "remaining_penetration"  # float64, mm, deepest overlap they left

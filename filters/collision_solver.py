@@ -12,7 +12,8 @@ Outputs: ``SolvedModel`` — every input block and array kept, points = solved p
 iteration); ``Convergence`` — a table with one row per iteration: ``iteration``,
 ``mean_displacement_<muscle>`` per muscle (mm; the paper's figures 5 and 6 in a line chart),
 ``colliding_pairs``, ``max_penetration`` (mm, before that iteration's response) and ``seconds``
-(cumulative).
+(cumulative); its field data ``projection_passes`` and ``remaining_penetration`` (mm) tell
+how many collision passes ran after the last iteration and the deepest overlap they left.
 """
 from __future__ import annotations
 
@@ -165,6 +166,16 @@ class MSSCollisionSolver(MuscleFilter):
         Property("MuscleBone", "bool", True,
                  "Handle collisions between muscle spheres and bone spheres.",
                  group="Collisions"),
+        Property("ProjectionPasses", "int", S.DEFAULT_PROJECTION_PASSES,
+                 "Collision passes (detection and response, no spring update) after the last "
+                 "iteration, until no two spheres of different objects overlap by more than "
+                 "PenetrationTolerance. A sphere pressed between two objects keeps half its "
+                 "overlap after one response, and the springs push it back in every iteration; "
+                 "these passes remove what is left. 0 turns them off (the paper's loop).",
+                 minimum=0, group="Collisions"),
+        Property("PenetrationTolerance", "double", S.DEFAULT_PENETRATION_TOLERANCE,
+                 "Deepest overlap (mm) of two spheres of different objects at which the final "
+                 "collision passes stop.", minimum=0.0, group="Collisions"),
         Property("BoneSphereSpacing", "double", DEFAULT_SPACING,
                  "Least distance between bone sphere centres, and their radius (mm). The bones "
                  "are sampled into about 0.62 * area / spacing^2 spheres (Poisson-disc): the "
@@ -188,7 +199,9 @@ class MSSCollisionSolver(MuscleFilter):
             structure=self.choice("CollisionStructure"),
             bvh_max_depth=self.value("BVHMaxDepth"),
             bvh_min_primitives=self.value("BVHMinPrimitives"),
-            muscle_muscle=self.value("MuscleMuscle"), muscle_bone=self.value("MuscleBone"))
+            muscle_muscle=self.value("MuscleMuscle"), muscle_bone=self.value("MuscleBone"),
+            projection_passes=self.value("ProjectionPasses"),
+            penetration_tolerance=self.value("PenetrationTolerance"))
 
     def execute(self, inputs, outputs):
         blocks = V.blocks(inputs[0], where=MODEL)
@@ -217,6 +230,8 @@ class MSSCollisionSolver(MuscleFilter):
         columns["max_penetration"] = result.max_penetration
         columns["seconds"] = result.seconds
         V.fill_table(outputs[1], columns)
+        V.set_field(outputs[1], A.PROJECTION_PASSES, result.projection_passes)
+        V.set_field(outputs[1], A.REMAINING_PENETRATION, result.remaining_penetration)
         self.progress(1.0)
 
     @staticmethod

@@ -25,8 +25,10 @@ def loose_model(positions, radii, muscles, fixed=None, springs=None, rest=None):
         rest, np.full(len(rest), 10.0), np.full(len(rest), 0.5))
 
 
-def one_iteration(model, structure, bones=(None, None, None)):
-    settings = solver.SolverSettings(iterations=1, structure=structure)
+def one_iteration(model, structure, bones=(None, None, None), projection_passes=0):
+    """One iteration: the paper's single response (no final projection unless asked)."""
+    settings = solver.SolverSettings(iterations=1, structure=structure,
+                                     projection_passes=projection_passes)
     return solver.solve(model, *bones, settings=settings)
 
 
@@ -91,6 +93,32 @@ def test_collided_particles_lose_their_velocity(structure):
     assert result.collided.tolist() == [False, False, False, True]
     assert np.abs(result.velocity[1]).max() > 0.1
     assert np.array_equal(result.velocity[3], [0, 0, 0])
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_final_passes_free_a_sphere_pressed_between_a_bone_and_another_muscle(structure):
+    # A (r 1) sits 0.2 mm in a bone sphere (r 1) and 0.4 mm under B (r 1) of another muscle
+    model = loose_model([[0, 0, 1.8], [0, 0, 3.4]], [1.0, 1.0], [0, 1])
+    bones = (np.array([[0.0, 0.0, 0.0]]), np.array([1.0]), np.array([0]))
+    once = one_iteration(model, structure, bones)
+    # the paper's response: A out of the bone by 0.2 and back by half of 0.4; B up by 0.2
+    np.testing.assert_allclose(once.positions[:, 2], [1.8, 3.6], atol=1e-12)
+    assert once.projection_passes == 0
+    tolerance = solver.DEFAULT_PENETRATION_TOLERANCE
+    result = one_iteration(model, structure, bones, projection_passes=100)
+    a, b = result.positions[:, 2]
+    assert 2.0 - tolerance <= a <= 2.0 + 1e-12        # on the bone, not thrown off it
+    assert b - a >= 2.0 - tolerance                     # B rests on A
+    assert 1 < result.projection_passes < 100
+    assert result.remaining_penetration <= tolerance
+    assert result.collided.all() and np.array_equal(result.velocity, np.zeros((2, 3)))
+
+
+def test_projection_passes_are_capped():
+    model = loose_model([[0, 0, 1.8], [0, 0, 3.4]], [1.0, 1.0], [0, 1])
+    bones = (np.array([[0.0, 0.0, 0.0]]), np.array([1.0]), np.array([0]))
+    result = one_iteration(model, "spatial hash", bones, projection_passes=2)
+    assert result.projection_passes == 2 and result.remaining_penetration > 0.01
 
 
 def random_cloud(seed, n=1500, muscles=5, bones=3):
