@@ -229,10 +229,8 @@ def _run_scatter(f0, f1, f2, t0, t1, t2, first, lanes, d):
 def _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest,
                    run_ptr, scattered_int, scattered_param, scattered_ptr):
     """Spring forces on the particles of muscle ``m`` into ``force`` (3, n)."""
-    for p in range(muscle_offsets[m], muscle_offsets[m + 1]):
-        force[0, p] = 0.0
-        force[1, p] = 0.0
-        force[2, p] = 0.0
+    for axis in range(3):
+        force[axis, muscle_offsets[m]:muscle_offsets[m + 1]] = 0.0
     x0, x1, x2 = x[0], x[1], x[2]
     v0, v1, v2 = v[0], v[1], v[2]
     f0, f1, f2 = force[0], force[1], force[2]
@@ -259,26 +257,71 @@ def _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus):
-    """Add the pressure force of muscle ``m``'s cage to ``force`` (see :func:`mss_steps`)."""
+    """Add the pressure force of muscle ``m``'s cage to ``force`` (see :func:`mss_steps`).
+
+    Coordinates are taken relative to one cage vertex ``o``: the volume of a closed cage is
+    ``sum (a - o).((b - o) x (c - o)) / 6`` for any ``o``, and near the cage the products keep
+    their digits (absolute coordinates are hundreds of mm, the cage tens)."""
     first, stop = cage_ptr[m], cage_ptr[m + 1]
     if stop == first or bulk_modulus == 0.0:
         return
+    x0, x1, x2 = x[0], x[1], x[2]
+    f0, f1, f2 = force[0], force[1], force[2]
+    corner = np.uint64(cage_triangles[first, 0])
+    ox, oy, oz = x0[corner], x1[corner], x2[corner]
     volume = 0.0
-    for t in range(first, stop):
-        a, b, c = cage_triangles[t, 0], cage_triangles[t, 1], cage_triangles[t, 2]
-        volume += (x[0, a] * (x[1, b] * x[2, c] - x[2, b] * x[1, c])
-                   + x[1, a] * (x[2, b] * x[0, c] - x[0, b] * x[2, c])
-                   + x[2, a] * (x[0, b] * x[1, c] - x[1, b] * x[0, c]))
+    for t in range(np.uint64(first), np.uint64(stop)):
+        a = np.uint64(cage_triangles[t, 0])
+        b = np.uint64(cage_triangles[t, 1])
+        c = np.uint64(cage_triangles[t, 2])
+        ay, az = x1[a] - oy, x2[a] - oz
+        by, bz = x1[b] - oy, x2[b] - oz
+        cy, cz = x1[c] - oy, x2[c] - oz
+        volume += ((x0[a] - ox) * (by * cz - bz * cy) + (x0[b] - ox) * (cy * az - cz * ay)
+                   + (x0[c] - ox) * (ay * bz - az * by))
     # the gradient of volume = sum a.(b x c) / 6 with respect to a is (b x c) / 6
     pressure = -bulk_modulus * (volume / (6.0 * rest_volume[m]) - 1.0) / 6.0
-    for t in range(first, stop):
-        for k in range(3):
-            a = cage_triangles[t, k]
-            b = cage_triangles[t, (k + 1) % 3]
-            c = cage_triangles[t, (k + 2) % 3]
-            force[0, a] += pressure * (x[1, b] * x[2, c] - x[2, b] * x[1, c])
-            force[1, a] += pressure * (x[2, b] * x[0, c] - x[0, b] * x[2, c])
-            force[2, a] += pressure * (x[0, b] * x[1, c] - x[1, b] * x[0, c])
+    for t in range(np.uint64(first), np.uint64(stop)):
+        a = np.uint64(cage_triangles[t, 0])
+        b = np.uint64(cage_triangles[t, 1])
+        c = np.uint64(cage_triangles[t, 2])
+        ax, ay, az = x0[a] - ox, x1[a] - oy, x2[a] - oz
+        bx, by, bz = x0[b] - ox, x1[b] - oy, x2[b] - oz
+        cx, cy, cz = x0[c] - ox, x1[c] - oy, x2[c] - oz
+        f0[a] += pressure * (by * cz - bz * cy)
+        f1[a] += pressure * (bz * cx - bx * cz)
+        f2[a] += pressure * (bx * cy - by * cx)
+        f0[b] += pressure * (cy * az - cz * ay)
+        f1[b] += pressure * (cz * ax - cx * az)
+        f2[b] += pressure * (cx * ay - cy * ax)
+        f0[c] += pressure * (ay * bz - az * by)
+        f1[c] += pressure * (az * bx - ax * bz)
+        f2[c] += pressure * (ax * by - ay * bx)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _integrate(x, v, x_prev, force, inv_mass, first, stop, dt, keep):
+    """One coordinate of the semi-implicit Euler step with implicit drag for particles
+    ``[first, stop)``; ``keep = 1 / (1 + dt drag)``."""
+    for p in range(np.uint64(first), np.uint64(stop)):
+        x_prev[p] = x[p]
+        v[p] = (v[p] + dt * inv_mass[p] * force[p]) * keep
+        x[p] += dt * v[p]
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
+                cage_triangles, rest_volume, muscle_offsets, runs_int, runs_param, lane_rest,
+                run_ptr, scattered_int, scattered_param, scattered_ptr):
+    """One semi-implicit Euler step of muscle ``m``, in place (arguments as :func:`mss_step`).
+    Muscles are independent: callers run them as the tasks of one ``prange``."""
+    _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest,
+                   run_ptr, scattered_int, scattered_param, scattered_ptr)
+    _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus)
+    keep = 1.0 / (1.0 + dt * drag)
+    for axis in range(3):
+        _integrate(x[axis], v[axis], x_prev[axis], force[axis], inv_mass, muscle_offsets[m],
+                   muscle_offsets[m + 1], dt, keep)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
@@ -292,17 +335,10 @@ def mss_step(x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cag
     dt s; drag 1/s, bulk_modulus g/(mm s^2) and the cages (:class:`VolumeCages`) as in
     :func:`mss_steps`; the rest as :class:`SpringLayout`.
     """
-    keep = 1.0 / (1.0 + dt * drag)
     for m in prange(muscle_offsets.shape[0] - 1):
-        _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param,
-                       lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
-        _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus)
-        for p in range(muscle_offsets[m], muscle_offsets[m + 1]):
-            h = dt * inv_mass[p]
-            for axis in range(3):
-                x_prev[axis, p] = x[axis, p]
-                v[axis, p] = (v[axis, p] + h * force[axis, p]) * keep
-                x[axis, p] += dt * v[axis, p]
+        muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
+                    cage_triangles, rest_volume, muscle_offsets, runs_int, runs_param,
+                    lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)

@@ -217,7 +217,7 @@ def _traverse(root_a, root_b, centres, radius, fixed, perm, scratch, static, nod
               best_partner, touched, collided, pairs, n_pairs):
     """Collide the trees of two objects: each sphere's deepest pair with the other object
     into ``best_*`` (spheres listed in ``touched[:state[2]]``); returns (colliding pairs,
-    deepest penetration mm). Records the pairs (sphere ids, lower first) in ``pairs`` while
+    deepest penetration mm of a pair that is not fixed on both sides). Records the pairs (sphere ids, lower first) in ``pairs`` while
     it has room."""
     stamp = state[1]
     count = 0
@@ -260,7 +260,8 @@ def _traverse(root_a, root_b, centres, radius, fixed, perm, scratch, static, nod
                             pairs[n_pairs[0], 1] = max(i, j)
                         n_pairs[0] += 1
                         count += 1
-                        deepest = max(deepest, pen)
+                        if not (fixed[i] and fixed[j]):
+                            deepest = max(deepest, pen)
             continue
         if split_u and (not split_w or _volume(u, node_box) >= _volume(w, node_box)):
             node, other, side = u, w, 0

@@ -2,7 +2,7 @@
 
 Each iteration:
 
-1. mass-spring update (:func:`muscle_mss.core.mss.mss_step`: Hooke + damping along the spring,
+1. mass-spring update (:func:`muscle_mss.core.mss.muscle_step`: Hooke + damping along the spring,
    a viscous drag on the velocities and the pressure of each muscle's cage against a change of
    its rest volume, semi-implicit Euler, fixed particles stay);
 2. collision detection among the boundary spheres of different muscles and between muscle
@@ -13,7 +13,8 @@ Each iteration:
    itself); the displacements are accumulated and applied after all tests, and the particles
    that collided get zero velocity;
 4. per muscle the mean displacement ``mean |x_k - x_{k-1}|`` (the paper's figures 5 and 6), the
-   colliding pairs, the deepest penetration and the elapsed seconds are recorded.
+   colliding pairs, the deepest penetration (of the pairs a response can resolve: a tendon
+   attachment, fixed, sits inside its bone for good) and the elapsed seconds are recorded.
 
 Terminations (:data:`TERMINATIONS`): a fixed number of iterations; the mean displacement below a
 threshold (every muscle's, and not rising: the displacement first grows while the posed model
@@ -46,7 +47,7 @@ from numba import njit, prange
 from . import octree_bvh, spatial_hash
 from .errors import MuscleMSSError
 from .cage import muscle_cage
-from .mss import (Spheres, VolumeCages, lattice_order, make_spheres, mss_step, now,
+from .mss import (Spheres, VolumeCages, lattice_order, make_spheres, muscle_step, now,
                   spring_layout)
 from .volume import signed_volume
 
@@ -130,7 +131,8 @@ class SolveResult:
 
     ``positions``, ``velocity`` (n, 3) mm, mm/s; ``collided`` (n,) bool (last iteration);
     ``mean_displacement`` (K, M) mm; ``muscle_pairs``, ``bone_pairs`` (K,) colliding pairs;
-    ``max_penetration`` (K,) mm (deepest before the response); ``seconds`` (K,) cumulative;
+    ``max_penetration`` (K,) mm (deepest before the response, of a pair not fixed on both
+    sides); ``seconds`` (K,) cumulative;
     ``phase_seconds`` MSS / muscle-muscle CD / muscle-bone CD (with the response) totals of the
     iterations, and the final projection's; ``stopped_by`` the termination that ended the loop;
     ``projection_passes`` the collision passes after the last iteration and
@@ -227,15 +229,32 @@ def _cages(model: MSSModel, rank) -> VolumeCages:
 
 # ---- the kernel ------------------------------------------------------------------------------
 
+@njit(cache=True, inline="always")
+def _gather_sphere(s, x, particle, centres, disp, collided):
+    """Sphere ``s``'s centre from its particle; its displacement and collided flag cleared."""
+    for axis in range(3):
+        centres[axis, s] = x[axis, particle[s]]
+        disp[axis, s] = 0.0
+    collided[s] = 0
+
+
 @njit(cache=True, parallel=True)
-def _gather(x, particle, centres, disp, collided):
-    for s in prange(particle.shape[0]):
-        for axis in range(3):
-            centres[axis, s] = x[axis, particle[s]]
-    for g in prange(disp.shape[1]):
-        for axis in range(3):
-            disp[axis, g] = 0.0
-        collided[g] = 0
+def _step_and_gather(mss, spheres):
+    """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step`), each muscle's
+    sphere centres then gathered for the collision tests — one parallel region: every region
+    costs a thread wake-up (~0.1 ms on a virtual machine), which is a large part of one
+    iteration at N = 80."""
+    (x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr, cage_triangles,
+     rest_volume, offsets, runs_int, runs_param, lane_rest, run_ptr, scattered_int,
+     scattered_param, scattered_ptr) = mss
+    particle, centres, disp, collided, sphere_ptr = (spheres[0], spheres[5], spheres[6],
+                                                     spheres[7], spheres[10])
+    for m in prange(offsets.shape[0] - 1):
+        muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus,
+                    cage_ptr, cage_triangles, rest_volume, offsets, runs_int, runs_param,
+                    lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+        for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
+            _gather_sphere(s, x, particle, centres, disp, collided)
 
 
 @njit(cache=True)
@@ -249,50 +268,32 @@ def _tally(pair_count, pair_pen):
 
 
 @njit(cache=True, parallel=True)
-def _respond(x, particle, disp, collided):
-    """Apply the accumulated displacements (mm) of the collided spheres to their particles."""
-    for s in prange(particle.shape[0]):
-        if collided[s]:
-            p = particle[s]
-            for axis in range(3):
-                x[axis, p] += disp[axis, s]
-
-
-@njit(cache=True, parallel=True)
-def _stop_collided(v, particle, collided):
-    """Zero the velocity of the particles whose spheres collided."""
-    for s in prange(particle.shape[0]):
-        if collided[s]:
-            p = particle[s]
-            for axis in range(3):
-                v[axis, p] = 0.0
-
-
-@njit(cache=True, parallel=True)
-def _collide(x, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
-    """Collision detection and the paper's response at the current positions ``x``: the
-    displacements are applied to the particles (:func:`_respond`). Returns ``(muscle pairs,
-    bone pairs, deepest penetration before the response mm, seconds of muscle CD, seconds of
-    bone CD and the response, spheres whose lists were refreshed, lists)``; keep the returned
-    lists (``lists`` are the spatial hash's candidate lists, grown when they outgrow their
-    room)."""
+def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
+    """Collision detection at the gathered sphere centres: each collided sphere's displacement
+    by the paper's response into ``disp``, ``collided`` set (both cleared by the gather).
+    Returns ``(muscle pairs, bone pairs, deepest penetration before the response mm, seconds
+    of muscle CD, seconds of bone CD, spheres whose lists were refreshed, lists)``; keep the
+    returned lists (the spatial hash's candidate lists, grown when they outgrow their room)."""
     (particle, radius, muscle, fixed, moves, centres, disp, collided, pair_count,
-     pair_pen) = spheres
+     pair_pen, sphere_ptr) = spheres
     (bone_centres, bone_radius, bone_object, bone_moves, bone_table, muscle_cell, skin,
-     mb_built, longest) = hashed
+     mb_built, longest, pending) = hashed
     mm_lists, mb_begin, mb_end, mb_idx, room = lists
     (b_centres, b_radius, b_fixed, perm, b_scratch, object_first, static, node_int, node_box,
      node_stamp, stack, state, best_pen, best_dir, best_partner, touched, n_muscles, max_depth,
      min_primitives, no_pairs, n_pairs) = bvh
     ns = particle.shape[0]
     t1 = now()
-    _gather(x, particle, centres, disp, collided)
     mm_count = 0
     mb_count = 0
     deepest = 0.0
     refreshed = 0
     if use_bvh:
         state[1] += 1
+        for g in range(ns, disp.shape[1]):
+            for axis in range(3):
+                disp[axis, g] = 0.0
+            collided[g] = 0
         for axis in range(3):
             b_centres[axis, :ns] = centres[axis]
         if muscle_muscle:
@@ -317,22 +318,22 @@ def _collide(x, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists
             mm_count, deepest = _tally(pair_count, pair_pen)
         t2 = now()
         if muscle_bone:
-            found = spatial_hash.refresh_own_lists(
-                centres, radius, muscle, bone_table, skin, mb_built, mb_begin, mb_end,
-                mb_idx, room, longest)
+            found = spatial_hash.own_list_contacts(
+                centres, radius, fixed, muscle, bone_table, skin, mb_built, mb_begin, mb_end,
+                mb_idx, room, longest, pending, False, bone_centres, bone_radius, bone_object,
+                bone_moves, disp, collided, pair_count, pair_pen)
             if found > room:
+                # the spheres tested keep their counts; the pending ones get theirs now
+                mb_count, pen = _tally(pair_count, pair_pen)
                 room = 2 * found
                 mb_idx = np.empty(ns * room, dtype=np.int64)
                 mb_built[:, :] = np.inf
-                spatial_hash.refresh_own_lists(
-                    centres, radius, muscle, bone_table, skin, mb_built, mb_begin, mb_end,
-                    mb_idx, room, longest)
-            spatial_hash.list_contacts(centres, radius, fixed, mb_begin, mb_end, mb_idx,
-                                       bone_centres, bone_radius, bone_object, bone_moves,
-                                       False, disp, collided, pair_count, pair_pen)
+                spatial_hash.own_list_contacts(
+                    centres, radius, fixed, muscle, bone_table, skin, mb_built, mb_begin,
+                    mb_end, mb_idx, room, longest, pending, True, bone_centres, bone_radius,
+                    bone_object, bone_moves, disp, collided, pair_count, pair_pen)
             mb_count, pen = _tally(pair_count, pair_pen)
             deepest = max(deepest, pen)
-    _respond(x, particle, disp, collided)
     t3 = now()
     return (mm_count, mb_count, deepest, t2 - t1, t3 - t2, refreshed,
             (mm_lists, mb_begin, mb_end, mb_idx, room))
@@ -341,31 +342,33 @@ def _collide(x, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists
 @njit(cache=True, parallel=True)
 def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, started, lists):
     """Iterations ``first`` up to ``last`` (fewer when a termination stops the loop): the MSS
-    step, then :func:`_collide`; each iteration's row of ``history``. Returns ``(status,
-    iterations done, diverged muscle or -1, list refreshes, lists)``."""
-    (x, v, x_prev, force, scratch, inv_mass, cage_ptr, cage_triangles, rest_volume, offsets,
-     runs_int, runs_param, lane_rest, run_ptr, scattered_int, scattered_param,
-     scattered_ptr) = mss
+    step, :func:`_collide`, the response; each iteration's row of ``history``. Returns
+    ``(status, iterations done, diverged muscle or -1, list refreshes, lists)``."""
+    x, v, x_prev, offsets = mss[0], mss[1], mss[2], mss[12]
+    particle, disp, collided, sphere_ptr = spheres[0], spheres[6], spheres[7], spheres[10]
     mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
-    (dt, drag, bulk_modulus, use_bvh, muscle_muscle, muscle_bone, termination, threshold,
-     budget, limit) = control
-    particle, collided = spheres[0], spheres[7]
+    (use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit) = control
     status = RUNNING
     bad = -1
     rebuilds = 0
     it = first
     while it < last and status == RUNNING:
         t0 = now()
-        mss_step(x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
-                 cage_triangles, rest_volume, offsets, runs_int, runs_param, lane_rest, run_ptr,
-                 scattered_int, scattered_param, scattered_ptr)
+        _step_and_gather(mss, spheres)
         t1 = now()
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = _collide(
-            x, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists)
+            spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists)
         rebuilds += refreshed
         t3 = now()
-        _stop_collided(v, particle, collided)
+        # the response: apply the displacements, stop the collided particles; each muscle's
+        # mean particle displacement of the iteration, mean |x - x_prev|
         for m in prange(offsets.shape[0] - 1):
+            for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
+                if collided[s]:
+                    p = particle[s]
+                    for axis in range(3):
+                        x[axis, p] += disp[axis, s]
+                        v[axis, p] = 0.0
             total = 0.0
             for p in range(offsets[m], offsets[m + 1]):
                 d2 = 0.0
@@ -403,26 +406,30 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
 @njit(cache=True, parallel=True)
 def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, passes,
              tolerance, lists, ever_collided):
-    """Collision passes without the MSS step (:func:`_collide`) until no pair penetrates more
-    than ``tolerance`` mm, at most ``passes``. A response moves the spheres of a pair apart as
-    measured before it; when a sphere is pressed between two objects (a muscle against a bone,
-    say) one pass leaves half the overlap, so the passes repeat it the way the iterations
-    would, without the springs pushing back in between. ``ever_collided`` (n_spheres,) gets
-    the spheres that collided in any pass. Returns ``(passes run, deepest penetration left
-    mm, lists)``: the deepest left is that found by the last pass before its response, 0 when
-    nothing collided."""
-    particle, collided = spheres[0], spheres[7]
+    """Collision passes without the MSS step (:func:`_collide` and the response) until no
+    pair penetrates more than ``tolerance`` mm, at most ``passes``. A response moves the
+    spheres of a pair apart as measured before it; when a sphere is pressed between two
+    objects (a muscle against a bone, say) one pass leaves half the overlap, so the passes
+    repeat it the way the iterations would, without the springs pushing back in between.
+    ``ever_collided`` (n_spheres,) gets the spheres that collided in any pass. Returns
+    ``(passes run, deepest penetration left mm, lists)``: the deepest left is that found by
+    the last pass before its response, 0 when nothing collided."""
+    particle, centres, disp, collided = spheres[0], spheres[5], spheres[6], spheres[7]
     done = 0
     deepest = 0.0
     while done < passes:
+        for s in prange(particle.shape[0]):
+            _gather_sphere(s, x, particle, centres, disp, collided)
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = _collide(
-            x, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists)
+            spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists)
         done += 1
         for s in prange(particle.shape[0]):
             if collided[s]:
                 ever_collided[s] = 1
+                p = particle[s]
                 for axis in range(3):
-                    v[axis, particle[s]] = 0.0
+                    x[axis, p] += disp[axis, s]
+                    v[axis, p] = 0.0
         if deepest <= tolerance:
             break
     return done, deepest, lists
@@ -486,8 +493,9 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     x = np.ascontiguousarray(posed.T)
     v = np.zeros_like(x)
     work = np.zeros((3, 3, n))
-    mss = ((x, v, work[0], work[1], work[2], prep.inv_mass) + prep.cages.arrays + (offsets,)
-           + prep.layout.arrays)
+    mss = ((x, v, work[0], work[1], work[2], prep.inv_mass, float(settings.time_step),
+            float(settings.drag), float(settings.bulk_modulus)) + prep.cages.arrays
+           + (offsets,) + prep.layout.arrays)
 
     if bone_centres is None:
         bone_centres, bone_radius, bone_id = np.zeros((0, 3)), np.zeros(0), np.zeros(0, int)
@@ -498,15 +506,14 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     sphere_state = (spheres.particle, spheres.radius, spheres.muscle, spheres.fixed,
                     ~spheres.fixed, np.zeros((3, ns)), np.zeros((3, ns + nb)),
                     np.zeros(ns + nb, dtype=np.uint8), np.zeros(ns, dtype=np.int64),
-                    np.zeros(ns))
+                    np.zeros(ns), np.searchsorted(spheres.muscle, np.arange(n_muscles + 1)))
     hashed = _hash_state(spheres, settings.structure == "spatial hash")
     bvh = _bvh_state(spheres, settings)
 
     cap = int(settings.iterations)
     history = (np.zeros((cap, n_muscles)), np.zeros(cap, dtype=np.int64),
                np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap), np.zeros(4))
-    control = (float(settings.time_step), float(settings.drag), float(settings.bulk_modulus),
-               settings.structure == "octree BVH",
+    control = (settings.structure == "octree BVH",
                bool(settings.muscle_muscle), bool(settings.muscle_bone),
                TERMINATIONS.index(settings.termination), float(settings.displacement_threshold),
                float(settings.time_budget),
@@ -545,7 +552,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     if settings.projection_passes > 0 and (settings.muscle_muscle or settings.muscle_bone):
         tick = time.perf_counter()
         passes, left, lists = _project(
-            x, v, sphere_state, fixed_state, bvh, control[3], control[4], control[5],
+            x, v, sphere_state, fixed_state, bvh, control[0], control[1], control[2],
             int(settings.projection_passes), float(settings.penetration_tolerance), lists,
             collided_spheres)
         phases[3] += time.perf_counter() - tick
@@ -581,7 +588,7 @@ def _hash_state(spheres: Spheres, used: bool) -> tuple:
     return (spheres.bone_centres, spheres.bone_radius, bone_object,
             np.zeros(len(spheres.bone_radius), dtype=np.bool_), table,
             spatial_hash.muscle_cell(spheres, skin), skin, np.full((3, ns), np.inf),
-            np.zeros(ns, dtype=np.int64),
+            np.zeros(ns, dtype=np.int64), np.zeros(ns, dtype=np.uint8),
             spatial_hash.muscle_lists(spheres.radius if used else np.zeros(0)),
             empty, empty.copy(), np.zeros(ns * room, np.int64), room)
 

@@ -17,7 +17,7 @@ those of a brute-force test as long as the lists are complete:
   patched in place between rebuilds. (:func:`candidate_lists` still builds all lists at once,
   for :func:`colliding_pairs`.)
 * bones do not move during a solve: their grid is built once, and each muscle sphere rebuilds
-  its own bone list when *it* has moved more than ``skin / 2`` (:func:`refresh_own_lists`).
+  its own bone list when *it* has moved more than ``skin / 2`` (:func:`own_list_contacts`).
 
 Every parallel loop over spheres is a ``prange`` in which sphere ``i`` only writes its own
 entries (its candidates, its displacement): no atomics, and sums in a fixed order, so results
@@ -35,7 +35,7 @@ from .mss import Spheres, deeper, push_share, sphere_push
 # Skin of the candidate lists as a fraction of the mean muscle sphere radius: longer lists
 # against more refreshes. Lists rebuilt all at once whenever any sphere moved (candidate_lists)
 # need the wide skin (N = 20: 32 rebuilds at 1.5, 499 at 0.75); lists refreshed sphere by sphere
-# (muscle_contacts, refresh_own_lists) are fastest near 0.75 (N = 80: muscle CD 1.3-1.6 s
+# (muscle_contacts, own_list_contacts) are fastest near 0.75 (N = 80: muscle CD 1.3-1.6 s
 # against 1.8-2.2 s at 1.5).
 SKIN_FRACTION = 1.5
 PER_SPHERE_SKIN_FRACTION = 0.75
@@ -282,14 +282,23 @@ def candidate_lists(query, q_radius, q_object, table, skin):
 
 
 @njit(cache=True, parallel=True)
-def refresh_own_lists(query, q_radius, q_object, table, skin, built, begin, end, idx, room,
-                      longest):
-    """Rebuild the lists of the query spheres that moved more than ``skin / 2`` since their own
-    list was built (exact when the targets do not move: the bones). Each sphere owns the
-    slots ``idx[i * room:(i + 1) * room]``; ``built`` (3, nq) holds the positions at the last
-    build. ``longest`` (nq,) work array. Returns the largest list length found (above
-    ``room``: rebuild with more room)."""
+def own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, begin, end, idx,
+                      room, longest, pending, retry, t_centres, t_radius, t_object, t_moves,
+                      disp, collided, pair_count, pair_pen):
+    """Collisions of the query spheres with targets that do not move (the bones), through
+    lists each sphere keeps on its own, in one pass over the spheres: a sphere that moved more
+    than ``skin / 2`` since its list was built rebuilds it (exact, the targets being still),
+    then is tested against it as :func:`list_contacts` does (same response, bit for bit).
+
+    Sphere ``i`` owns the slots ``idx[i * room:(i + 1) * room]``; ``built`` (3, nq) holds the
+    positions at its last build (inf: build now); ``longest`` (nq,) receives each rebuilt list's
+    length. A sphere whose list does not fit its room is left untested with ``pending[i]`` set:
+    the caller then grows ``room`` (and ``idx``), sets ``built`` to inf and calls again with
+    ``retry``, which rebuilds every list and tests only the pending spheres. Returns the
+    longest list found (above ``room``: call again)."""
     for i in prange(query.shape[1]):
+        if retry and not pending[i]:
+            continue
         longest[i] = 0
         d2 = 0.0
         for axis in range(3):
@@ -302,6 +311,13 @@ def refresh_own_lists(query, q_radius, q_object, table, skin, built, begin, end,
             begin[i] = i * room
             end[i] = i * room + min(found, room)
             longest[i] = found
+        pending[i] = longest[i] > room
+        if pending[i]:
+            pair_count[i] = 0
+            pair_pen[i] = 0.0
+        else:
+            _contact(i, query, q_radius, fixed, begin[i], end[i], idx, t_centres, t_radius,
+                     t_object, t_moves, False, disp, collided, pair_count, pair_pen)
     return longest.max() if query.shape[1] else 0
 
 
@@ -314,7 +330,8 @@ def list_contacts(centres, radius, fixed, begin, end, idx, t_centres, t_radius, 
     the penetration of its deepest pair with that object along the centre line
     (:mod:`muscle_mss.core.mss`), and sets ``collided[i]``. ``pair_count[i]``, ``pair_pen[i]``
     get its number of colliding pairs (each pair counted once: with ``same_set``, from its
-    lower sphere) and their deepest penetration (mm). ``t_moves[j]``: target ``j`` is a free
+    lower sphere) and the deepest penetration (mm) of those a response can resolve (not fixed
+    on both sides: a tendon attachment sits inside its bone for good). ``t_moves[j]``: target ``j`` is a free
     particle.
     """
     for i in prange(centres.shape[1]):
@@ -353,7 +370,8 @@ def _contact(i, centres, radius, fixed, first, last, idx, t_centres, t_radius, t
                 bx, by, bz = nx, ny, nz
             if j > i or not same_set:
                 count += 1
-                deepest = max(deepest, pen)
+                if not fixed[i] or t_moves[j]:
+                    deepest = max(deepest, pen)
     pair_count[i] = count
     pair_pen[i] = deepest
 
@@ -471,17 +489,16 @@ def _relaid(count, slot, idx):
     return grown, pool, np.zeros(grown[n], dtype=idx.dtype)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end, partner, disp,
              collided, pair_count, pair_pen):
     """:func:`list_contacts` on the colliding pairs ``hit`` found by their owners: each sphere
     gets its colliding partners ``partner[begin[i]:end[i]]`` in increasing index order and the
-    same response. Serial: a few thousand pairs. Returns ``partner`` (grown when too short)."""
+    same response. The partner lists are gathered serially (a few thousand pairs), the
+    responses in parallel. Returns ``partner`` (grown when too short)."""
     n = hits.shape[0]
     total = 0
     for i in range(n):
-        pair_count[i] = 0
-        pair_pen[i] = 0.0
         end[i] = hits[i]
     for i in range(n):
         for e in range(slot[i], slot[i] + hits[i]):
@@ -501,7 +518,9 @@ def _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end,
             end[i] += 1
             partner[end[j]] = i
             end[j] += 1
-    for i in range(n):
+    for i in prange(n):
+        pair_count[i] = 0
+        pair_pen[i] = 0.0
         if end[i] > begin[i]:
             for f in range(begin[i] + 1, end[i]):
                 j = partner[f]
