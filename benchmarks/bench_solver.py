@@ -6,7 +6,9 @@ the motion. The paper's particle counts (1344 / 2624 / 3904 / 5184 per muscle fo
 40, 60, 80") are 64 * (N + 1): its N counts intervals, so this runs N + 1 particles per fibre to
 compare like with like. Prints a table of MSS, muscle-muscle CD and muscle-bone CD seconds for
 both collision structures, the total, the speed-up over the paper's Table 1 (i7-3770, one
-thread) and the machine, and writes it to benchmarks/results/solver.md.
+thread) and the machine, and writes it to benchmarks/results/solver.md. Each configuration is
+solved three times and the median reported: on a shared virtual machine single runs vary by
+a fifth.
 
     python benchmarks/bench_solver.py [N ...]        (default: 20 40 60 80)
 """
@@ -34,6 +36,7 @@ PAPER = {20: (18.66, 8.15, 30.03, 56.84), 40: (39.97, 13.50, 37.43, 90.90),
          60: (60.53, 24.00, 56.03, 140.56), 80: (80.70, 29.53, 67.10, 177.33)}
 BONE_COUNTS = {"pelvis": 8527, "femur": 1568, "tibia": 1709}
 ITERATIONS = 500
+REPEATS = 3
 
 
 def cpu_model() -> str:
@@ -76,15 +79,22 @@ def main(sizes):
             settings = S.SolverSettings(iterations=ITERATIONS, structure=structure)
             S.solve(model, *bones, settings=S.SolverSettings(iterations=2, structure=structure),
                     prepared=prepared)
-            start = time.perf_counter()
-            result = S.solve(model, *bones, settings=settings, prepared=prepared)
-            total = time.perf_counter() - start
-            p = result.phase_seconds
+            runs = []
+            for _ in range(REPEATS):
+                start = time.perf_counter()
+                result = S.solve(model, *bones, settings=settings, prepared=prepared)
+                runs.append((time.perf_counter() - start, result.phase_seconds,
+                             result.projection_passes))
+            runs.sort(key=lambda run: run[0])
+            total, p, passes = runs[len(runs) // 2]
+            spread = f"{runs[0][0]:.2f}-{runs[-1][0]:.2f}"
             rows.append((n, per_muscle, boundary, structure, p["mss"], p["muscle_cd"],
-                         p["bone_cd"], total, PAPER[n][3] / total, os.getloadavg()[0]))
-            print(f"N={n} ({per_muscle} particles/muscle) {structure}: total {total:.2f} s "
-                  f"(MSS {p['mss']:.2f}, muscle CD {p['muscle_cd']:.2f}, bone CD "
-                  f"{p['bone_cd']:.2f}), load {os.getloadavg()[0]:.2f}", flush=True)
+                         p["bone_cd"], p["projection"], passes, total, spread,
+                         PAPER[n][3] / total, os.getloadavg()[0]))
+            print(f"N={n} ({per_muscle} particles/muscle) {structure}: median total {total:.2f} s "
+                  f"of {spread} (MSS {p['mss']:.2f}, muscle CD {p['muscle_cd']:.2f}, bone CD "
+                  f"{p['bone_cd']:.2f}, {passes} final passes {p['projection']:.2f}), load "
+                  f"{os.getloadavg()[0]:.2f}", flush=True)
     lines = [
         "# MSS Collision Solver benchmark (paper's workload, 500 iterations)", "",
         f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
@@ -92,12 +102,18 @@ def main(sizes):
         f"numpy {np.__version__}, Python {platform.python_version()}.",
         "Load average (1 min) after each run is given: on a shared machine the numbers are "
         "pessimistic.", "",
+        f"Each row is the median of {REPEATS} solves (their range beside it); MSS includes "
+        "applying the collision displacements and measuring the mean displacement, final "
+        "passes are the collision passes after "
+        "the last iteration (until no overlap is above 0.01 mm). The total is the wall time of "
+        "the whole solve.", "",
         "| N | particles / muscle | boundary / muscle | structure | MSS s | muscle CD s | "
-        "bone CD s | total s | paper total s | speed-up | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for n, per, bnd, st, a, b, c, tot, speed, load in rows:
-        lines.append(f"| {n} | {per} | {bnd} | {st} | {a:.2f} | {b:.2f} | {c:.2f} | {tot:.2f} "
-                     f"| {PAPER[n][3]:.2f} | {speed:.0f}x | {load:.2f} |")
+        "bone CD s | final passes (s) | total s | range s | paper total s | speed-up | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for n, per, bnd, st, a, b, c, proj, passes, tot, spread, speed, load in rows:
+        lines.append(f"| {n} | {per} | {bnd} | {st} | {a:.2f} | {b:.2f} | {c:.2f} | "
+                     f"{passes} ({proj:.2f}) | {tot:.2f} | {spread} | {PAPER[n][3]:.2f} | "
+                     f"{speed:.0f}x | {load:.2f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     out = Path(__file__).resolve().parent / "results" / "solver.md"

@@ -71,6 +71,8 @@ DEFAULT_BULK_MODULUS = 5.0
 # of itself; they stop as soon as the deepest penetration is below the tolerance.
 DEFAULT_PROJECTION_PASSES = 100
 DEFAULT_PENETRATION_TOLERANCE = 0.01    # mm
+STALLED_PASSES = 10
+PROGRESS = 0.95
 CHUNK_SECONDS = 0.1
 
 RUNNING, CONVERGED, OUT_OF_TIME, DIVERGED = range(4)
@@ -410,13 +412,20 @@ def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, pa
     pair penetrates more than ``tolerance`` mm, at most ``passes``. A response moves the
     spheres of a pair apart as measured before it; when a sphere is pressed between two
     objects (a muscle against a bone, say) one pass leaves half the overlap, so the passes
-    repeat it the way the iterations would, without the springs pushing back in between.
+    repeat it the way the iterations would, without the springs pushing back in between (the
+    deepest overlap then halves every two passes). They also stop after
+    :data:`STALLED_PASSES` passes in which the sum of the responses' displacements did not fall
+    below :data:`PROGRESS` times its least so far: a sphere wedged between two bones (a knee
+    joint gap narrower than the sphere) is pushed back and forth and cannot be freed, while the
+    pushes of the overlaps that can be resolved shrink geometrically.
     ``ever_collided`` (n_spheres,) gets the spheres that collided in any pass. Returns
     ``(passes run, deepest penetration left mm, lists)``: the deepest left is that found by
     the last pass before its response, 0 when nothing collided."""
     particle, centres, disp, collided = spheres[0], spheres[5], spheres[6], spheres[7]
     done = 0
     deepest = 0.0
+    best = np.inf
+    since_best = 0
     while done < passes:
         for s in prange(particle.shape[0]):
             _gather_sphere(s, x, particle, centres, disp, collided)
@@ -432,6 +441,17 @@ def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, pa
                     v[axis, p] = 0.0
         if deepest <= tolerance:
             break
+        push = 0.0
+        for s in range(particle.shape[0]):
+            if collided[s]:
+                push += np.sqrt(disp[0, s] ** 2 + disp[1, s] ** 2 + disp[2, s] ** 2)
+        if push < PROGRESS * best:
+            best = push
+            since_best = 0
+        else:
+            since_best += 1
+            if since_best >= STALLED_PASSES:
+                break
     return done, deepest, lists
 
 

@@ -121,6 +121,17 @@ def test_projection_passes_are_capped():
     assert result.projection_passes == 2 and result.remaining_penetration > 0.01
 
 
+def test_final_passes_give_up_on_a_sphere_wedged_between_two_bones():
+    # a 1 mm sphere in a 0.5 mm gap between two bones: each pass pushes it out of both
+    model = loose_model([[0.0, 0.0, 1.25]], [1.0], [0])
+    bones = (np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.5]]), np.array([1.0, 1.0]),
+             np.array([0, 1]))
+    result = one_iteration(model, "spatial hash", bones, projection_passes=100)
+    assert result.projection_passes == 1 + solver.STALLED_PASSES
+    assert result.remaining_penetration == pytest.approx(0.75)
+    np.testing.assert_allclose(result.positions[0], [0.0, 0.0, 1.25], atol=1e-12)
+
+
 def random_cloud(seed, n=1500, muscles=5, bones=3):
     rng = np.random.default_rng(seed)
     muscle = np.sort(rng.integers(0, muscles, n))
