@@ -331,7 +331,8 @@ def list_contacts(centres, radius, fixed, begin, end, idx, t_centres, t_radius, 
     (:mod:`muscle_mss.core.mss`), and sets ``collided[i]``. ``pair_count[i]``, ``pair_pen[i]``
     get its number of colliding pairs (each pair counted once: with ``same_set``, from its
     lower sphere) and the deepest penetration (mm) of those a response can resolve (not fixed
-    on both sides: a tendon attachment sits inside its bone for good). ``t_moves[j]``: target ``j`` is a free
+    on both sides: a tendon attachment sits inside its bone for good). ``t_moves[j]``: target
+    ``j`` is a free
     particle.
     """
     for i in prange(centres.shape[1]):

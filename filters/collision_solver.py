@@ -10,7 +10,8 @@ springs = two-point line cells with cell data ``rest_length``, ``stiffness``, ``
 Outputs: ``SolvedModel`` — every input block and array kept, points = solved positions, plus
 ``velocity`` (mm/s), ``displacement`` (solved - posed, mm) and ``collided`` (uint8, in the last
 iteration or the final collision passes); ``Convergence`` — a table with one row per
-iteration: ``iteration``, ``mean_displacement_<muscle>`` per muscle (mm; the paper's figures 5 and 6 in a line chart),
+iteration: ``iteration``, ``mean_displacement_<muscle>`` per muscle (mm; the paper's figures 5
+and 6 in a line chart),
 ``colliding_pairs``, ``max_penetration`` (mm, before that iteration's response, of the pairs it
 can resolve: not a fixed tendon sphere against its bone) and ``seconds``
 (cumulative); its field data ``projection_passes`` and ``remaining_penetration`` (mm) tell
