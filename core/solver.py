@@ -240,6 +240,16 @@ def _gather_sphere(s, x, particle, centres, disp, collided):
     collided[s] = 0
 
 
+@njit(cache=True, inline="always")
+def _respond_sphere(s, x, v, particle, disp):
+    """The response to collided sphere ``s``: its particle moves by the accumulated
+    displacement (mm) and stops."""
+    p = particle[s]
+    for axis in range(3):
+        x[axis, p] += disp[axis, s]
+        v[axis, p] = 0.0
+
+
 @njit(cache=True, parallel=True)
 def _step_and_gather(mss, spheres):
     """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step`), each muscle's
@@ -367,10 +377,7 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
         for m in prange(offsets.shape[0] - 1):
             for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
                 if collided[s]:
-                    p = particle[s]
-                    for axis in range(3):
-                        x[axis, p] += disp[axis, s]
-                        v[axis, p] = 0.0
+                    _respond_sphere(s, x, v, particle, disp)
             total = 0.0
             for p in range(offsets[m], offsets[m + 1]):
                 d2 = 0.0
@@ -435,10 +442,7 @@ def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, pa
         for s in prange(particle.shape[0]):
             if collided[s]:
                 ever_collided[s] = 1
-                p = particle[s]
-                for axis in range(3):
-                    x[axis, p] += disp[axis, s]
-                    v[axis, p] = 0.0
+                _respond_sphere(s, x, v, particle, disp)
         if deepest <= tolerance:
             break
         push = 0.0
