@@ -2,7 +2,9 @@
 # Installs what muscle-mss needs on a Debian 12 machine (run as root), skipping what is there:
 #   - Debian's ParaView 5.11 with its Python packages (pvpython, pvbatch, paraview; numba 0.56,
 #     numpy 1.24, scipy 1.10), pytest for that Python, xvfb for the headless GUI, Open MPI;
-#   - the development venv .venv with this package (editable) and its test extra.
+#   - the development venv .venv with this package (editable) and its test extra;
+#   - the numeric kernels compiled for the venv and for Debian's Python (the one pvpython and
+#     pvbatch run), both at once: 2-3 minutes the first time, a second or two when compiled.
 # ./demo.sh and ./test.sh call it; it is safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -27,3 +29,9 @@ if ! .venv/bin/python -c "import muscle_mss.filters, pyvista, pytest" >/dev/null
   .venv/bin/python -m pip install -q --upgrade pip
   .venv/bin/python -m pip install -q -e '.[test]'
 fi
+
+# Each Python keeps its kernels in a cache folder of its own (README "The first run").
+.venv/bin/python -m muscle_mss.filters.warm_up &
+venv_warm_up=$!
+PYTHONPATH="$PWD/plugin/shim" /usr/bin/python3 -m muscle_mss.filters.warm_up
+wait "$venv_warm_up"

@@ -59,3 +59,83 @@ def use_kernel_cache_dir() -> str:
     numba.config.CACHE_DIR = path
     return path
 
+
+COMPILE_SECONDS = 150.0
+"""Seconds a cold compile of every kernel took on the shared 2-core development machine (120 s
+with numba 0.68, 180 s with numba 0.56, load average 2-3; README "The first run"): the
+notice's estimate until this machine has measured its own (:func:`compile_estimate`)."""
+WARM_PREFIX = "warm-"
+
+
+def _core_folder() -> str:
+    return os.path.dirname(os.path.abspath(__file__))
+
+
+def core_stamps(folder: str | None = None) -> dict:
+    """``{file name: [mtime, size]}`` of the core's ``.py`` files: what Numba checks a cached
+    kernel against (besides its own folder key)."""
+    folder = folder or _core_folder()
+    stamps = {}
+    for name in sorted(os.listdir(folder)):
+        if name.endswith(".py"):
+            st = os.stat(os.path.join(folder, name))
+            stamps[name] = [st.st_mtime, st.st_size]
+    return stamps
+
+
+def warm_marker(folder: str | None = None) -> str:
+    """The file that says every kernel of the core in ``folder`` (default: this package) is
+    compiled in :func:`kernel_cache_dir`. Numba files its kernels under the absolute path of
+    their sources, so two checkouts of the same core sharing a cache folder have a marker each."""
+    folder = folder or _core_folder()
+    where = hashlib.sha1(os.path.abspath(folder).encode()).hexdigest()[:12]
+    return os.path.join(kernel_cache_dir(folder=folder), f"{WARM_PREFIX}{where}.json")
+
+
+def is_warm(folder: str | None = None) -> bool:
+    """True when :func:`mark_warm` recorded a complete compile of the current sources (the same
+    files, modification times and sizes), i.e. Numba will load every kernel from its cache."""
+    import json
+    try:
+        with open(warm_marker(folder)) as f:
+            return json.load(f).get("stamps") == core_stamps(folder)
+    except (OSError, ValueError):
+        return False
+
+
+def mark_warm(seconds: float, folder: str | None = None) -> None:
+    """Record that every kernel was compiled (in ``seconds``) for the current sources. A cache
+    folder that cannot be written is not an error: Numba then compiles in memory each time."""
+    import json
+    path = warm_marker(folder)
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path + ".tmp", "w") as f:
+            json.dump({"seconds": round(float(seconds), 1), "stamps": core_stamps(folder)}, f)
+        os.replace(path + ".tmp", path)
+    except OSError:
+        pass
+
+
+def compile_estimate(base: str | None = None) -> float:
+    """Seconds a cold compile is expected to take: the longest one recorded on this machine for
+    this Python, Numba and NumPy (any version of the sources; a warm-up that found its kernels
+    cached records a few seconds only), else :data:`COMPILE_SECONDS`."""
+    import glob
+    import json
+    base = base_cache_dir() if base is None else base
+    recorded = []
+    for path in glob.glob(os.path.join(base, f"numba-*-{runtime_tag()}", WARM_PREFIX + "*.json")):
+        try:
+            with open(path) as f:
+                recorded.append(float(json.load(f)["seconds"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return max(recorded, default=COMPILE_SECONDS)
+
+
+def compile_notice(seconds: float | None = None) -> str:
+    """The one-line notice shown while the kernels compile."""
+    seconds = compile_estimate() if seconds is None else seconds
+    return (f"compiling the numeric kernels once for this Python; about {seconds:.0f} s "
+            f"(cached in {kernel_cache_dir()})")

@@ -24,6 +24,7 @@ from vtkmodules.vtkCommonExecutionModel import (vtkDemandDrivenPipeline,
 from muscle_mss.core.errors import MuscleMSSError
 
 from .properties import Property
+from .warm_up import ensure_compiled
 
 SDDP = vtkStreamingDemandDrivenPipeline
 
@@ -108,6 +109,7 @@ class MuscleFilter(VTKPythonAlgorithmBase):
                 if data is None and not port.optional:
                     raise MuscleMSSError(f"input '{port.name}' is not connected")
                 inputs.append(data)
+            ensure_compiled(_compile_notice)
             self.execute(inputs, outputs)
         except MuscleMSSError as err:
             self._error = err
@@ -160,6 +162,11 @@ class MuscleFilter(VTKPythonAlgorithmBase):
         if info.Has(SDDP.UPDATE_TIME_STEP()):
             return info.Get(SDDP.UPDATE_TIME_STEP())
         return default
+
+
+def _compile_notice(text: str) -> None:
+    """Show the kernel compile notice among ParaView's output messages (stderr elsewhere)."""
+    vtkOutputWindow.GetInstance().DisplayWarningText(f"Muscle MSS: {text}\n")
 
 
 def pipeline_error(algorithm):

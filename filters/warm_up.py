@@ -1,0 +1,90 @@
+"""Compile every Numba kernel once per Python, saying so, before the first real solve.
+
+A cold start compiles the core's kernels (1–2 minutes; README "The first run"). Numba caches
+them (:mod:`muscle_mss.core.kernel_cache`) in a folder per Python, Numba and NumPy, so this
+happens once per Python and version of the sources. :func:`ensure_compiled` is called by the
+CLI and the batch before they solve, and by every filter before it executes (ParaView, plain
+VTK): when the cache is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`
+once, compiles every kernel by running tiny solves through the filter chain (each collision
+structure and blending, so that a later choice compiles nothing either) and records the cache
+as warm. ``./setup.sh`` runs it for the venv and Debian's Python::
+
+    python -m muscle_mss.filters.warm_up
+"""
+from __future__ import annotations
+
+import shutil
+import sys
+import tempfile
+import time
+
+from muscle_mss.core import kernel_cache
+
+VARIANTS = (
+    {"Iterations": 3},
+    {"Iterations": 3, "CollisionStructure": "octree BVH", "Blending": "linear",
+     "Termination": "displacement threshold"},
+)
+"""Filter settings whose tiny solves together call every kernel with the argument types of a
+real run (property values select kernels, not argument types)."""
+_checked = {"done": False}
+
+
+def warm_up(variants=VARIANTS) -> float:
+    """Run one time point of a two-muscle scene through the whole filter chain for each of
+    ``variants``; return the seconds taken (mostly compiling, when the cache is cold)."""
+    from muscle_mss.core.demo_scene import demo_scene
+    from . import motion_run
+    from .scene_io import write_scene
+
+    start = time.perf_counter()
+    scene = demo_scene("small")
+    for name in list(scene.muscles)[2:]:
+        del scene.muscles[name]
+        del scene.fibres[name]
+    folder = tempfile.mkdtemp(prefix="muscle-mss-warm-up-")
+    try:
+        write_scene(scene, folder)
+        for settings in variants:
+            pipeline = motion_run.build_pipeline(folder, settings)
+            motion_run.solve_time_point(pipeline, len(pipeline.times) // 2)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return time.perf_counter() - start
+
+
+def ensure_compiled(report) -> bool:
+    """Once per process: when the kernel cache of this Python is cold, ``report(text)`` the
+    compile notice, compile every kernel (:func:`warm_up`), record the cache as warm and report
+    the seconds it took. Returns True when it compiled."""
+    if _checked["done"]:
+        return False
+    _checked["done"] = True  # the warm-up runs filters, which call this again
+    if kernel_cache.is_warm():
+        return False
+    report(kernel_cache.compile_notice())
+    try:
+        seconds = warm_up()
+    except Exception as err:  # noqa: BLE001  the solve itself then compiles what it uses
+        report(f"compiling ahead failed ({type(err).__name__}: {err}); the kernels compile as "
+               "they are first used")
+        return False
+    kernel_cache.mark_warm(seconds)
+    report(f"compiled the numeric kernels in {seconds:.0f} s; later runs of this Python load "
+           "them from the cache")
+    return True
+
+
+def main() -> int:
+    """``python -m muscle_mss.filters.warm_up``: compile (or find compiled) every kernel."""
+    # Run as a script this file is ``__main__``; the filters check the package's module.
+    from muscle_mss.filters import warm_up as package_module
+    if not package_module.ensure_compiled(lambda text: print(text, file=sys.stderr,
+                                                             flush=True)):
+        print(f"numeric kernels already compiled in {kernel_cache.kernel_cache_dir()}",
+              file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

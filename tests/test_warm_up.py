@@ -1,0 +1,87 @@
+"""Compiling the kernels once per Python, and saying so (filters.warm_up, core.kernel_cache)."""
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from muscle_mss.core import kernel_cache
+from muscle_mss.filters import warm_up
+
+NOTICE = "compiling the numeric kernels once for this Python"
+
+
+def test_marker_follows_the_sources_stamps(tmp_path, monkeypatch):
+    core = tmp_path / "core"
+    core.mkdir()
+    (core / "a.py").write_text("x = 1\n")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    assert not kernel_cache.is_warm(str(core))
+    kernel_cache.mark_warm(12.3, str(core))
+    assert kernel_cache.is_warm(str(core))
+    assert os.path.dirname(kernel_cache.warm_marker(str(core))) == \
+        kernel_cache.kernel_cache_dir(folder=str(core))
+    os.utime(core / "a.py", (1, 1))  # Numba recompiles a kernel whose file time changed
+    assert not kernel_cache.is_warm(str(core))
+
+
+def test_estimate_is_the_longest_compile_recorded(tmp_path):
+    assert kernel_cache.compile_estimate(str(tmp_path)) == kernel_cache.COMPILE_SECONDS
+    for k, seconds in enumerate((95.0, 3.0)):
+        folder = tmp_path / f"numba-{k}-{kernel_cache.runtime_tag()}"
+        folder.mkdir()
+        (folder / f"{kernel_cache.WARM_PREFIX}x.json").write_text(f'{{"seconds": {seconds}}}')
+    other = tmp_path / "numba-0-cp27-numba0.1-numpy0.1"
+    other.mkdir()
+    (other / f"{kernel_cache.WARM_PREFIX}x.json").write_text('{"seconds": 999}')
+    assert kernel_cache.compile_estimate(str(tmp_path)) == 95.0
+
+
+def test_ensure_compiled_says_so_once_and_records_the_cache_warm(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    monkeypatch.setitem(warm_up._checked, "done", False)
+    ran = []
+    monkeypatch.setattr(warm_up, "warm_up", lambda: ran.append(1) or 42.0)
+    said = []
+    assert warm_up.ensure_compiled(said.append)
+    assert len(said) == 2 and said[0].startswith(NOTICE) and "42 s" in said[1]
+    assert kernel_cache.is_warm() and ran == [1]
+    assert not warm_up.ensure_compiled(said.append)  # once per process
+    monkeypatch.setitem(warm_up._checked, "done", False)
+    assert not warm_up.ensure_compiled(said.append)  # a new process finds it warm
+    assert len(said) == 2 and ran == [1]
+
+
+@pytest.fixture(scope="module")
+def warm_cache_copy(tmp_path_factory):
+    """A copy of this Python's kernel cache with every kernel compiled but no warm marker: a
+    run in it goes through the cold path (the notice, the warm-up) in seconds."""
+    warm_up.ensure_compiled(lambda text: None)  # compiles here if this Python is cold
+    base = tmp_path_factory.mktemp("kernels")
+    source = kernel_cache.kernel_cache_dir()
+    shutil.copytree(source, base / os.path.basename(source))
+    os.remove(base / os.path.basename(source) / os.path.basename(kernel_cache.warm_marker()))
+    return base
+
+
+def _cli(*args, cache):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    return subprocess.run([sys.executable, "-m", "muscle_mss.filters.cli", *map(str, args)],
+                          env=env, capture_output=True, text=True, timeout=600)
+
+
+def test_cli_says_once_that_it_compiles_then_never_again(warm_cache_copy, small_scene_dir,
+                                                         tmp_path):
+    first = _cli("run", small_scene_dir, tmp_path / "one", "--time", "0.5", "--iterations", "5",
+                 cache=warm_cache_copy)
+    assert first.returncode == 0, first.stderr
+    assert first.stderr.count(NOTICE) == 1
+    assert "compiled the numeric kernels in" in first.stderr
+    marker = os.path.join(str(warm_cache_copy), os.path.relpath(
+        kernel_cache.warm_marker(), kernel_cache.base_cache_dir()))
+    assert os.path.exists(marker)
+    second = _cli("run", small_scene_dir, tmp_path / "two", "--time", "0.5", "--iterations", "5",
+                  cache=warm_cache_copy)
+    assert second.returncode == 0, second.stderr
+    assert NOTICE not in second.stderr
