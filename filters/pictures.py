@@ -21,6 +21,22 @@ BLEND_FALLOFF = 20.0
 """Distance (mm) over which a muscle point's pose blends from its nearest bone to the next."""
 
 
+def _pyvista_off_screen():
+    """pyvista set to render off-screen. Without a display VTK's default window tries the X
+    server first and prints "bad X server connection" before it falls back to EGL; there
+    the EGL window is asked for directly (when libEGL is present and the user chose no
+    window class)."""
+    import ctypes.util
+    import os
+
+    import pyvista
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) \
+            and ctypes.util.find_library("EGL"):
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    pyvista.OFF_SCREEN = True
+    return pyvista
+
+
 def _transform(matrix, points):
     return points @ matrix[:, :3].T + matrix[:, 3]
 
@@ -64,7 +80,7 @@ def scene_preview(scene, path, time=None, window_size=(1600, 1100)) -> str:
 
     Returns the path written.
     """
-    import pyvista
+    pyvista = _pyvista_off_screen()
 
     if scene.motion is None:
         raise MuscleMSSError("scene has no motion; the preview shows the rest and a moved pose")
@@ -72,7 +88,6 @@ def scene_preview(scene, path, time=None, window_size=(1600, 1100)) -> str:
     if missing:
         raise MuscleMSSError(f"motion names bones that the scene lacks: {', '.join(missing)}")
     shown = pose_time(scene.motion, time)
-    pyvista.OFF_SCREEN = True
     plotter = pyvista.Plotter(off_screen=True, shape=(1, 2), window_size=list(window_size),
                               border=False)
     rest = np.stack([np.hstack([np.eye(3), np.zeros((3, 1))])] * len(scene.motion.bones))
@@ -152,8 +167,6 @@ def poses_picture(pipeline, index, path, window_size=(1800, 800)) -> str:
     :class:`~muscle_mss.filters.motion_run.Pipeline`: the rest pose, the rigid-only pose (the
     Rigid Pose Transform's surfaces) and the solved pose (the MVC Surface Deformer's surfaces),
     as the paper's figure 1. Returns ``path``."""
-    import pyvista
-
     from . import vtk_arrays as V
     from .motion_run import update_at
 
@@ -164,7 +177,7 @@ def poses_picture(pipeline, index, path, window_size=(1800, 800)) -> str:
                update_at(pipeline.pose, 1, t)),
               (f"solved, t = {t:.2f} s", update_at(pipeline.deformer, 0, t),
                update_at(pipeline.pose, 1, t)))
-    pyvista.OFF_SCREEN = True
+    pyvista = _pyvista_off_screen()
     plotter = pyvista.Plotter(off_screen=True, shape=(1, 3), window_size=list(window_size),
                               border=False)
     for column, (title, muscles, bones) in enumerate(panels):
