@@ -101,6 +101,8 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene) ->
     from . import motion_run
     from .pictures import convergence_picture, poses_picture
 
+    start = wallclock.perf_counter()
+    compile_kernels()
     bar = {}
 
     def on_step(result, done, total):
@@ -117,11 +119,20 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene) ->
     poses_picture(pipeline, index, os.path.join(out, "poses.png"))
     print(summary_table(rows))
     print(f"wrote {out}: surfaces.pvd, fibres.pvd, particles.pvd, summary.csv, "
-          "convergence.png, poses.png")
+          f"convergence.png, poses.png in {wallclock.perf_counter() - start:.0f} s")
     return rows
 
 
+def compile_kernels() -> None:
+    """Compile the numeric kernels first when this Python has not yet, saying so on stderr."""
+    from .warm_up import ensure_compiled
+    ensure_compiled(lambda text: print(text, file=sys.stderr, flush=True))
+
+
 def cmd_demo(args) -> int:
+    from .motion_run import check_output_folder
+    if check_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
+        print(f"replacing the previous demo results in {args.out}")
     scene_folder = os.path.join(args.out, "scene")
     scene = write_demo_scene(scene_folder, args.size)
     print(f"demo scene ({args.size}): {scene_counts(scene)} -> {scene_folder}")
@@ -134,14 +145,18 @@ def cmd_run(args) -> int:
     from .scene_io import load_scene
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
+    if motion_run.check_output_folder(args.out, args.overwrite):
+        print(f"replacing the previous run in {args.out}")
     if args.time is None:
         run_and_report(args.scene, args.out, settings_from(args), scene)
         return 0
+    compile_kernels()
     pipeline = motion_run.build_pipeline(args.scene, settings_from(args))
     index = min(range(len(pipeline.times)), key=lambda i: abs(pipeline.times[i] - args.time))
     result = motion_run.solve_time_point(pipeline, index)
     motion_run.write_time_point(result, args.out)
     motion_run.write_summary(args.out, result.rows)
+    motion_run.write_index(args.out, [result.time], [result.index])
     print(summary_table(result.rows))
     return 0
 
@@ -187,6 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help="scene folder")
     p.add_argument("out", help="output folder")
     p.add_argument("--time", type=float, help="only the time point nearest this time (s)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier run in OUT (refused without it)")
     _add_run_options(p)
     p.set_defaults(func=cmd_run)
     return parser

@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import csv
 import os
+import re
+import shutil
+import tempfile
 import time as wallclock
 from dataclasses import dataclass, field
 
@@ -22,6 +25,7 @@ import numpy as np
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataWriter
 
+from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.scene import MOTION_FILE
 
 from . import array_names as A
@@ -32,6 +36,9 @@ SUMMARY_COLUMNS = ("time", "muscle", "rest_volume", "volume", "volume_error_pct"
                    "mean_fibre_strain", "max_fibre_strain", "max_penetration_mm",
                    "iterations", "seconds")
 SERIES = ("surfaces", "fibres", "particles")
+RUN_FILES = ("summary.csv", "surfaces.pvd", "fibres.pvd", "particles.pvd", "convergence.png",
+             "poses.png", "series", "convergence")
+"""What a run writes in its output folder (files and folders): another run's results."""
 
 
 @dataclass
@@ -175,25 +182,118 @@ def series_file(name: str, index: int) -> str:
     return os.path.join("series", f"{name}_{index:04d}.vtm")
 
 
+def previous_run(out: str) -> list:
+    """The files and folders of a run (:data:`RUN_FILES`) that ``out`` holds already."""
+    return [name for name in RUN_FILES if os.path.exists(os.path.join(out, name))]
+
+
+def check_output_folder(out: str, overwrite: bool = False) -> list:
+    """Check ``out`` before solving: it is created if missing and must be writable; when it
+    holds another run's results they are refused, or removed with ``overwrite`` (so that no
+    file of the earlier run, e.g. a time point it had in addition, stays beside the new ones).
+    Returns the names removed. Raises :class:`MuscleMSSError` naming the folder and the cause."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise MuscleMSSError(f"output folder {out} is a file; give a folder")
+    found = previous_run(out)
+    if found and not overwrite:
+        raise MuscleMSSError(f"output folder {out} holds the results of another run "
+                             f"({', '.join(found)}); choose another folder or pass --overwrite "
+                             "to replace them")
+    try:
+        os.makedirs(out, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
+            pass
+        for name in found:
+            path = os.path.join(out, name)
+            if os.path.isdir(path):
+                shutil.rmtree(path)
+            else:
+                os.remove(path)
+    except OSError as err:
+        raise MuscleMSSError(f"output folder {out} cannot be written: "
+                             f"{err.strerror or err}") from None
+    return found
+
+
 def write_time_point(result: TimePointResult, out: str) -> None:
-    """Write one time point's series files and convergence table under ``out``."""
-    os.makedirs(os.path.join(out, "series"), exist_ok=True)
-    os.makedirs(os.path.join(out, "convergence"), exist_ok=True)
-    for name, data in zip(SERIES, (result.surfaces, result.fibres, result.particles)):
-        writer = vtkXMLMultiBlockDataWriter()
-        writer.SetFileName(os.path.join(out, series_file(name, result.index)))
-        writer.SetInputData(data)
-        writer.Write()
+    """Write one time point's series files and convergence table under ``out``.
+
+    Each ``.vtm`` is written with its ``.vtp`` files into a private folder first, checked (the
+    writer succeeded and every file the ``.vtm`` names exists), then renamed into ``series/``:
+    a failed write raises :class:`MuscleMSSError` and never leaves a ``.vtm`` pointing at
+    missing files."""
+    series = os.path.join(out, "series")
+    try:
+        os.makedirs(series, exist_ok=True)
+        os.makedirs(os.path.join(out, "convergence"), exist_ok=True)
+        staging = tempfile.mkdtemp(dir=series, prefix=".writing-")
+    except OSError as err:
+        raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
+    try:
+        for name, data in zip(SERIES, (result.surfaces, result.fibres, result.particles)):
+            final = os.path.join(out, series_file(name, result.index))
+            staged = os.path.join(staging, os.path.basename(final))
+            writer = vtkXMLMultiBlockDataWriter()
+            writer.SetFileName(staged)
+            writer.SetInputData(data)
+            _check_written(staged, final, writer.Write() == 1 and writer.GetErrorCode() == 0)
+            _move_into_place(staged, final)
+    except OSError as err:
+        raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     write_csv(os.path.join(out, "convergence", f"convergence_{result.index:04d}.csv"),
               list(result.convergence), zip(*result.convergence.values()))
 
 
+def _check_written(vtm: str, final: str, writer_ok: bool) -> None:
+    """Raise unless the writer reported success and wrote ``vtm`` and every file it names."""
+    missing = [] if os.path.isfile(vtm) else [os.path.basename(final)]
+    if not missing:
+        with open(vtm) as f:
+            named = re.findall(r'file="([^"]+)"', f.read())
+        missing = [n for n in named if not os.path.isfile(os.path.join(os.path.dirname(vtm), n))]
+    if missing or not writer_ok:
+        raise MuscleMSSError(f"writing {final} failed"
+                             + (f": {', '.join(missing)} not written" if missing else "")
+                             + "; check the free space and permissions of the output folder")
+
+
+def _move_into_place(staged_vtm: str, final_vtm: str) -> None:
+    """Rename a staged ``.vtm`` and its folder of ``.vtp`` files over the final ones; the
+    ``.vtm`` last, so that it never names files that are not there."""
+    staged_dir, final_dir = os.path.splitext(staged_vtm)[0], os.path.splitext(final_vtm)[0]
+    if os.path.exists(final_vtm):
+        os.remove(final_vtm)
+    if os.path.isdir(final_dir):
+        shutil.rmtree(final_dir)
+    if os.path.isdir(staged_dir):
+        os.replace(staged_dir, final_dir)
+    os.replace(staged_vtm, final_vtm)
+
+
+def _write_atomically(path: str, text_lines) -> None:
+    """Write ``path`` through a temporary file renamed over it; raise :class:`MuscleMSSError`
+    naming the file when it cannot be written."""
+    temporary = f"{path}.{os.getpid()}.tmp"
+    try:
+        with open(temporary, "w", newline="") as f:
+            text_lines(f)
+        os.replace(temporary, path)
+    except OSError as err:
+        if os.path.exists(temporary):
+            os.remove(temporary)
+        raise MuscleMSSError(f"cannot write {path}: {err.strerror or err}") from None
+
+
 def write_csv(path, header, rows) -> None:
-    with open(path, "w", newline="") as f:
+    """Write a CSV file (atomically: a reader sees the old file or the whole new one)."""
+    def lines(f):
         out = csv.writer(f)
         out.writerow(header)
         for row in rows:
             out.writerow([_csv_value(v) for v in row])
+    _write_atomically(path, lines)
 
 
 def _csv_value(v):
@@ -204,14 +304,16 @@ def _csv_value(v):
     return v
 
 
-def write_index(out: str, times) -> None:
-    """Write the ``.pvd`` index of each series for time points ``0..len(times)-1``."""
+def write_index(out: str, times, indices=None) -> None:
+    """Write the ``.pvd`` index of each series for time points ``indices`` (default
+    ``0..len(times)-1``) at ``times``."""
+    indices = range(len(times)) if indices is None else indices
     for name in SERIES:
         entries = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" '
-                            f'file="{series_file(name, i)}"/>' for i, t in enumerate(times))
-        with open(os.path.join(out, f"{name}.pvd"), "w") as f:
-            f.write('<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n'
-                    f"  <Collection>\n{entries}\n  </Collection>\n</VTKFile>\n")
+                            f'file="{series_file(name, i)}"/>' for i, t in zip(indices, times))
+        _write_atomically(os.path.join(out, f"{name}.pvd"), lambda f: f.write(
+            '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n'
+            f"  <Collection>\n{entries}\n  </Collection>\n</VTKFile>\n"))
 
 
 def write_summary(out: str, rows) -> str:

@@ -23,6 +23,8 @@ def parse_args(argv):
     parser.add_argument("--resolution", type=int, help="particles per fibre N")
     parser.add_argument("--layout", help="spring layout: lattice-6, lattice-26, Delaunay, k-NN")
     parser.add_argument("--iterations", type=int, help="solver iterations per time point")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the results of an earlier run in OUT (refused without it)")
     return parser.parse_args(argv)
 
 
@@ -47,9 +49,23 @@ def main(argv=None) -> int:
     from muscle_mss.filters import motion_run
     from muscle_mss.filters.cli import settings_from
 
-    os.makedirs(args.out, exist_ok=True)
-    partial = os.path.join(args.out, f".summary.rank{rank}.csv")
+    # Rank 0 compiles the kernels once (when this Python's cache is cold) while the others
+    # wait in _any_rank below, then load them from the cache instead of each compiling.
+    if rank == 0:
+        from muscle_mss.filters.warm_up import ensure_compiled
+        ensure_compiled(lambda text: print(text, file=sys.stderr, flush=True))
+    # Rank 0 checks OUT (and clears an earlier run's results with --overwrite) before any
+    # rank writes; all ranks stop if it refuses.
     failed = 0
+    if rank == 0:
+        try:
+            motion_run.check_output_folder(args.out, args.overwrite)
+        except MuscleMSSError as err:
+            print(f"error: {err}", file=sys.stderr)
+            failed = 1
+    if _any_rank(controller, size, failed):
+        return 1
+    partial = os.path.join(args.out, f".summary.rank{rank}.csv")
     try:
         pipeline, rows = motion_run.run_motion(
             args.scene, args.out, settings_from(args),
@@ -59,8 +75,7 @@ def main(argv=None) -> int:
     except MuscleMSSError as err:
         print(f"rank {rank}: error: {err}", file=sys.stderr)
         failed = 1
-    if controller is not None and size > 1:
-        controller.Barrier()
+    failed = _any_rank(controller, size, failed)  # no summary or index after a failed rank
     if rank == 0 and not failed:
         rows = _merge(args.out, size)
         times = sorted({float(r["time"]) for r in rows})
@@ -70,7 +85,19 @@ def main(argv=None) -> int:
               f"to {args.out} on {size} rank{'s' if size > 1 else ''}")
     if controller is not None and size > 1:
         controller.Barrier()
-    return failed
+    return int(failed)
+
+
+def _any_rank(controller, size, flag) -> bool:
+    """True on every rank when ``flag`` is set on any rank (a barrier as well)."""
+    if controller is None or size == 1:
+        return bool(flag)
+    from vtkmodules.vtkCommonCore import vtkIntArray
+    from vtkmodules.vtkParallelCore import vtkCommunicator
+    sent, received = vtkIntArray(), vtkIntArray()
+    sent.InsertNextValue(int(flag))
+    controller.AllReduce(sent, received, vtkCommunicator.MAX_OP)
+    return bool(received.GetValue(0))
 
 
 def _merge(out, size):

@@ -1,0 +1,118 @@
+"""What `muscle-mss run` and the batch do to their output folder, and what they print: an
+earlier run is never clobbered silently, writes are checked and atomic, pictures render
+off-screen without X warnings."""
+import csv
+import os
+import subprocess
+import sys
+
+import pytest
+
+from muscle_mss.filters import motion_run
+from muscle_mss.filters.cli import main
+
+pytest.importorskip("pyvista")  # the CLI's pictures; ParaView's Python has no pyvista
+
+EARLIER_RUN = {"summary.csv": "time,muscle\n9.0,earlier\n",
+               "surfaces.pvd": "<VTKFile>an earlier run</VTKFile>\n",
+               os.path.join("series", "surfaces_0009.vtm"): "an earlier time point\n"}
+
+
+def _earlier_run(folder):
+    for name, text in EARLIER_RUN.items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text(text)
+
+
+def _files(folder):
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def _run(scene, out, *options):
+    return main(["run", str(scene), str(out), "--time", "0.5", "--iterations", "5", *options])
+
+
+def test_run_refuses_a_folder_holding_another_run(small_scene_dir, tmp_path, capsys):
+    _earlier_run(tmp_path)
+    before = _files(tmp_path)
+    assert _run(small_scene_dir, tmp_path) == 2
+    err = capsys.readouterr().err
+    assert f"output folder {tmp_path} holds the results of another run (summary.csv, " \
+           "surfaces.pvd, series)" in err and "--overwrite" in err
+    assert "Traceback" not in err
+    assert _files(tmp_path) == before
+
+
+def test_a_folder_of_other_files_is_used_as_it_is(small_scene_dir, tmp_path):
+    (tmp_path / "notes.txt").write_text("mine")
+    assert _run(small_scene_dir, tmp_path) == 0
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+def _pvd_entries(path):
+    import re
+    return re.findall(r'timestep="([^"]+)" group="" part="0" file="([^"]+)"', path.read_text())
+
+
+def test_one_time_point_with_overwrite_leaves_a_consistent_folder(small_scene_dir, tmp_path):
+    _earlier_run(tmp_path)
+    assert _run(small_scene_dir, tmp_path, "--overwrite") == 0
+    with open(tmp_path / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    times = {r["time"] for r in rows}
+    assert len(times) == 1 and "earlier" not in {r["muscle"] for r in rows}
+    for series in motion_run.SERIES:
+        entries = _pvd_entries(tmp_path / f"{series}.pvd")
+        assert [float(t) for t, _ in entries] == [float(t) for t in times]
+        assert (tmp_path / entries[0][1]).is_file()
+        assert sorted(p.name for p in (tmp_path / "series").glob(f"{series}_*.vtm")) \
+            == [os.path.basename(entries[0][1])]  # the earlier run's time point is gone
+
+
+def test_an_unwritable_folder_is_refused_before_solving(small_scene_dir, tmp_path, capsys):
+    (tmp_path / "a_file").write_text("x")
+    for out, cause in ((tmp_path / "a_file", "is a file"),
+                       (tmp_path / "a_file" / "out", "cannot be written: Not a directory")):
+        assert _run(small_scene_dir, out) == 2
+        captured = capsys.readouterr()
+        assert f"output folder {out} {cause}" in captured.err
+        assert "Traceback" not in captured.err and "volume" not in captured.out
+
+
+def test_a_writer_failure_is_an_error_and_leaves_no_vtm(small_scene_dir, tmp_path, capsys,
+                                                        monkeypatch):
+    import shutil
+
+    class LosesItsFiles(motion_run.vtkXMLMultiBlockDataWriter):
+        """A writer whose .vtp files vanish (a full disk, a quota) while it reports success."""
+
+        def Write(self):
+            result = super().Write()
+            shutil.rmtree(os.path.splitext(self.GetFileName())[0])
+            return result
+
+    monkeypatch.setattr(motion_run, "vtkXMLMultiBlockDataWriter", LosesItsFiles)
+    assert _run(small_scene_dir, tmp_path) == 2
+    err = capsys.readouterr().err
+    assert "writing " in err and "surfaces_" in err and "_0.vtp" in err and "not written" in err
+    assert not list(tmp_path.rglob("*.vtm")) and not list(tmp_path.rglob("*.pvd"))
+    assert not (tmp_path / "summary.csv").exists()
+
+
+def test_batch_refuses_another_run_unless_overwrite(small_scene_dir, tmp_path, capsys):
+    from muscle_mss.plugin.batch import main as batch
+    _earlier_run(tmp_path)
+    before = _files(tmp_path)
+    assert batch([str(small_scene_dir), str(tmp_path), "--iterations", "3"]) == 1
+    assert "holds the results of another run" in capsys.readouterr().err
+    assert _files(tmp_path) == before
+
+
+def test_pictures_render_off_screen_without_x_warnings(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-m", "muscle_mss.filters.cli", "demo-scene",
+                           str(tmp_path / "scene"), "--size", "small"],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "scene" / "preview.png").stat().st_size > 10000
+    assert "X server" not in proc.stderr and "WARN" not in proc.stderr, proc.stderr
