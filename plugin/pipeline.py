@@ -87,13 +87,14 @@ def show_pipeline(p):
     bones.AmbientColor = bones.DiffuseColor = [1.0, 1.0, 1.0]
     muscles = simple.Show(simple.OutputPort(p["Volume-Error Probe"], 0), view)
     simple.ColorBy(muscles, ("POINTS", "displacement", "Magnitude"))
-    muscles.RescaleTransferFunctionToDataRange(True, False)
+    _rescale_every_time(muscles, "displacement")
     muscles.SetScalarBarVisibility(view, True)
-    fibres = simple.Show(simple.OutputPort(p["MVC Surface Deformer"], 1), view)
+    fibre_port = simple.OutputPort(p["MVC Surface Deformer"], 1)
+    fibres = simple.Show(fibre_port, view)
     simple.ColorBy(fibres, ("CELLS", "fibre_strain"))
-    fibres.RescaleTransferFunctionToDataRange(True, False)
+    _rescale_every_time(fibres, "fibre_strain")
     fibres.LineWidth = 2.0
-    simple.Hide(fibres, view)  # inside the muscles; switch on with the eye in the browser
+    simple.Hide(fibre_port, view)  # inside the muscles; switch on with the eye in the browser
     view.CameraPosition = [900.0, -1400.0, 300.0]
     view.CameraFocalPoint = [0.0, 0.0, -250.0]
     view.CameraViewUp = [0.0, 0.0, 1.0]
@@ -105,14 +106,30 @@ def show_pipeline(p):
     table = simple.Show(simple.OutputPort(p["MSS Collision Solver"], 1), chart)
     table.UseIndexForXAxis = 0
     table.XArrayName = "iteration"
-    series = [s for s in table.SeriesVisibility[::2] if s.startswith("mean_displacement_")] \
-        if len(table.SeriesVisibility) else []
-    table.SeriesVisibility = series
+    table.SeriesVisibility = convergence_series(p["MSS Collision Solver"])
     chart.LeftAxisTitle = "mean displacement (mm)"
     chart.BottomAxisTitle = "iteration"
     chart.LeftAxisLogScale = 1
     simple.SetActiveView(view)
     return view, chart
+
+
+def _rescale_every_time(display, array):
+    """Colour ``display`` by a range that follows the data at every time shown (a range fixed
+    at the first time shown hides larger values later in the motion, e.g. 0-42 mm of 433)."""
+    from paraview import simple
+    display.RescaleTransferFunctionToDataRange(True, False)
+    simple.GetColorTransferFunction(array).AutomaticRescaleRangeMode = \
+        "Clamp and update every timestep"
+
+
+def convergence_series(solver):
+    """The convergence table's columns to plot: every muscle's mean displacement."""
+    from paraview import simple
+    solver.UpdatePipeline(simple.GetAnimationScene().AnimationTime)
+    names = solver.GetDataInformation(1).GetRowDataInformation()
+    return [names.GetArrayInformation(i).GetName() for i in range(names.GetNumberOfArrays())
+            if names.GetArrayInformation(i).GetName().startswith("mean_displacement_")]
 
 
 def main(argv=None) -> int:

@@ -84,6 +84,26 @@ def test_state_file_reloads_to_the_same_numbers(small_scene, small_scene_dir, tm
     assert loaded["time"] == pytest.approx(float(small_scene.motion.times[15]))
 
 
+def test_saved_state_hides_fibres_charts_every_muscle_and_follows_the_colour_range(
+        small_scene, small_scene_dir, tmp_path):
+    import shutil
+    from paraview_support import run
+    work = tmp_path / "review"
+    shutil.copytree(small_scene_dir, work / "data")
+    saved = run(["xvfb-run", "-a", "pvpython", SCRIPTS / "save_state.py", "data", "review.pvsm",
+                 float(small_scene.motion.times[15])], cwd=work)
+    assert "Invalid producer" not in saved.stderr and "ERR" not in saved.stderr, saved.stderr
+    shown = run_script("xvfb-run", "-a", "pvpython", "state_displays.py",
+                       work / "review.pvsm", work / "data")
+    assert shown["fibres_visible"] is False
+    assert sorted(shown["chart_series"]) == sorted(f"mean_displacement_{m}"
+                                                   for m in small_scene.muscles)
+    (_, first), (_, second) = shown["ranges"]
+    assert abs(second[1] - first[1]) > 0.2 * first[1]  # the two times differ enough to tell
+    for colours, data in shown["ranges"]:
+        assert colours == pytest.approx(data, rel=1e-6, abs=1e-9)
+
+
 def test_gui_opens_the_state_and_shows_the_muscles(small_scene, small_scene_dir, tmp_path):
     import numpy as np
     from PIL import Image
