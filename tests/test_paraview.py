@@ -144,6 +144,29 @@ def test_mpi_batch_equals_the_serial_batch(small_scene_dir, tmp_path):
         assert (serial / name).read_text() == (parallel / name).read_text()
 
 
+def test_mpi_ranks_share_one_compile(small_scene_dir, tmp_path):
+    """With ParaView's Python's kernels not yet recorded as compiled, rank 0 compiles (says so,
+    once) while the other rank waits and then finds them compiled."""
+    import glob
+    import os
+    import shutil
+    from paraview_support import REPO, run
+    from muscle_mss.core import kernel_cache
+
+    run(["pvpython", "-m", "muscle_mss.filters.warm_up"])  # ParaView's Python's own cache
+    digest = kernel_cache.sources_digest(os.path.join(REPO, "core"))
+    (own,) = glob.glob(str(REPO / ".numba-cache" / "debian" / f"numba-{digest}-*numba0.56*"))
+    shutil.copytree(own, tmp_path / "kernels" / os.path.basename(own))
+    markers = list((tmp_path / "kernels").rglob(f"{kernel_cache.WARM_PREFIX}*.json"))
+    for marker in markers:
+        marker.unlink()
+    proc = run(["mpiexec", "--allow-run-as-root", "--oversubscribe", "-n", "2", "pvbatch",
+                "--sym", "-m", "muscle_mss.plugin.batch", small_scene_dir, tmp_path / "out",
+                "--iterations", "3"], NUMBA_CACHE_DIR=tmp_path / "kernels")
+    assert proc.stderr.count("compiling the numeric kernels once for this Python") == 1
+    assert all(marker.exists() for marker in markers) and markers
+
+
 def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
     from muscle_mss.core.demo_scene import MUSCLE_NAMES, demo_scene
     from muscle_mss.core.motion import farthest_pose_index
