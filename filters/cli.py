@@ -132,7 +132,7 @@ def compile_kernels() -> None:
 def cmd_demo(args) -> int:
     from .motion_run import check_output_folder
     if check_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
-        print(f"replacing the previous demo results in {args.out}")
+        print(f"replacing the results of the previous run in {args.out}")
     scene_folder = os.path.join(args.out, "scene")
     scene = write_demo_scene(scene_folder, args.size)
     print(f"demo scene ({args.size}): {scene_counts(scene)} -> {scene_folder}")
