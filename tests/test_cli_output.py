@@ -116,3 +116,19 @@ def test_pictures_render_off_screen_without_x_warnings(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "scene" / "preview.png").stat().st_size > 10000
     assert "X server" not in proc.stderr and "WARN" not in proc.stderr, proc.stderr
+
+
+def test_batch_with_overwrite_replaces_the_earlier_run(small_scene, small_scene_dir, tmp_path):
+    from muscle_mss.plugin.batch import main as batch
+    _earlier_run(tmp_path)
+    (tmp_path / "series" / "surfaces_0099.vtm").write_text("a time point the new run lacks")
+    assert batch([str(small_scene_dir), str(tmp_path), "--iterations", "3", "--overwrite"]) == 0
+    with open(tmp_path / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(small_scene.motion.times) * len(small_scene.muscles)
+    assert "earlier" not in {r["muscle"] for r in rows}
+    entries = _pvd_entries(tmp_path / "surfaces.pvd")
+    assert len(entries) == len(small_scene.motion.times)
+    assert sorted(p.name for p in (tmp_path / "series").glob("surfaces_*.vtm")) \
+        == sorted(os.path.basename(file) for _, file in entries)
+    assert not list(tmp_path.glob(".summary.rank*"))
