@@ -13,6 +13,7 @@ as warm. ``./setup.sh`` runs it for the venv and Debian's Python::
 """
 from __future__ import annotations
 
+import os
 import shutil
 import sys
 import tempfile
@@ -53,6 +54,18 @@ def warm_up(variants=VARIANTS) -> float:
     return time.perf_counter() - start
 
 
+def _compiled_files() -> dict:
+    """Numba's machine-code files in this Python's cache folder, with their modification
+    times."""
+    found = {}
+    for root, _, names in os.walk(kernel_cache.kernel_cache_dir()):
+        for name in names:
+            if name.endswith(".nbc"):
+                path = os.path.join(root, name)
+                found[path] = os.stat(path).st_mtime_ns
+    return found
+
+
 def ensure_compiled(report) -> bool:
     """Once per process: when the kernel cache of this Python is cold, ``report(text)`` the
     compile notice, compile every kernel (:func:`warm_up`), record the cache as warm and report
@@ -63,13 +76,17 @@ def ensure_compiled(report) -> bool:
     if kernel_cache.is_warm():
         return False
     report(kernel_cache.compile_notice())
+    before = _compiled_files()
     try:
         seconds = warm_up()
     except Exception as err:  # noqa: BLE001  the solve itself then compiles what it uses
         report(f"compiling ahead failed ({type(err).__name__}: {err}); the kernels compile as "
                "they are first used")
         return False
-    kernel_cache.mark_warm(seconds)
+    # The marker's seconds are the next cold start's estimate: a warm-up that compiled nothing
+    # (its kernels were cached, the marker was not) keeps the earlier estimate.
+    kernel_cache.mark_warm(seconds if _compiled_files() != before
+                           else kernel_cache.compile_estimate())
     report(f"compiled the numeric kernels in {seconds:.0f} s; later runs of this Python load "
            "them from the cache")
     return True
