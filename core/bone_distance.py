@@ -13,11 +13,12 @@ outside); a brick whose centre is closer to the surface than ``band`` plus half 
 holds the exact distance at each of its ``(BRICK + 1)^3`` nodes (the narrow band, ``spacing``
 apart), so every point within ``band`` mm of the surface is looked up in a fine brick. Values
 are float32. The exact distance of a node is the distance to the nearest triangle (Ericson's
-closest point on a triangle), found through a uniform grid of triangle buckets searched in
-rings; its sign is that of ``(x - c) . n`` with ``c`` the closest point and ``n`` the
-angle-weighted pseudo-normal of the closest feature (Baerentzen & Aanaes 2005: the face normal,
-the sum of the two face normals at an edge, the angle-weighted sum at a vertex), which is exact
-for closed, manifold, outward-oriented surfaces.
+closest point on a triangle), found in a bounding volume hierarchy of the triangles (each
+node starting from its neighbour's nearest triangle); its sign is that of ``(x - c) . n``
+with ``c`` the closest point and ``n`` the angle-weighted pseudo-normal of the closest feature
+(Baerentzen & Aanaes 2005: the face normal, the sum of the two face normals at an edge, the
+angle-weighted sum at a vertex), which is exact for closed, manifold, outward-oriented
+surfaces.
 
 Lookup (:func:`signed_distances`): trilinear interpolation of the fine brick holding the point,
 else of the coarse grid, and the gradient of that interpolant. Outside the sampled box (which
@@ -38,6 +39,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -183,41 +185,65 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     return dx * dx + dy * dy + dz * dz, qx, qy, qz, feature
 
 
+LEAF_SIZE = 4
+"""Triangles per leaf of the bounding volume hierarchy at most."""
+_STACK = 64
+"""Depth of the traversal stack (a median-split tree of 2^40 leaves would need 40)."""
+
+
 @njit(cache=True)
-def _nearest_signed(px, py, pz, points, triangles, face_normals, edge_normals, vertex_normals,
-                    cell_start, cell_triangles, lower, cell, dims):
-    """Exact signed distance (mm, negative inside) of p to the surface, the triangles found
-    through the bucket grid (``lower`` (3,), ``cell`` mm, ``dims`` (3,) cells; triangles of cell
-    ``(i, j, k)`` in ``cell_triangles[cell_start[c]:cell_start[c + 1]]``, ``c = (i dy + j) dz +
-    k``). Rings of cells around p's cell are searched until the nearest triangle found is closer
-    than any unvisited cell: everything in ring ``k + 1`` is at least ``k * cell`` away."""
-    ci = min(max(int((px - lower[0]) / cell), 0), dims[0] - 1)
-    cj = min(max(int((py - lower[1]) / cell), 0), dims[1] - 1)
-    ck = min(max(int((pz - lower[2]) / cell), 0), dims[2] - 1)
+def _box_distance_sq(px, py, pz, low, high, node):
+    gx = max(max(low[node, 0] - px, px - high[node, 0]), 0.0)
+    gy = max(max(low[node, 1] - py, py - high[node, 1]), 0.0)
+    gz = max(max(low[node, 2] - pz, pz - high[node, 2]), 0.0)
+    return gx * gx + gy * gy + gz * gz
+
+
+@njit(cache=True)
+def _nearest_signed(px, py, pz, hint, stack, points, triangles, face_normals, edge_normals,
+                    vertex_normals, low, high, child, first, count, order):
+    """Exact signed distance (mm, negative inside) of p to the surface and its nearest
+    triangle, found in the bounding volume hierarchy (node n: box ``low[n]``..``high[n]``;
+    inner nodes have children ``child[n]`` and ``child[n] + 1``, leaves (child -1) hold
+    ``order[first[n]:first[n] + count[n]]``), nearer child first, boxes farther than the best
+    triangle so far skipped. A ``hint`` triangle (>= 0; a neighbouring point's nearest) starts
+    the search with a tight bound. ``stack`` (_STACK,) int64 is scratch."""
     best = np.inf
     bx = by = bz = 0.0
     bt = -1
     bf = 0
-    rings = max(dims[0], max(dims[1], dims[2]))
-    for k in range(rings + 1):
-        for i in range(max(ci - k, 0), min(ci + k, dims[0] - 1) + 1):
-            for j in range(max(cj - k, 0), min(cj + k, dims[1] - 1) + 1):
-                edge_ij = abs(i - ci) == k or abs(j - cj) == k
-                for l in range(max(ck - k, 0), min(ck + k, dims[2] - 1) + 1):
-                    if not edge_ij and abs(l - ck) != k:
-                        continue
-                    c = (i * dims[1] + j) * dims[2] + l
-                    for s in range(cell_start[c], cell_start[c + 1]):
-                        t = cell_triangles[s]
-                        a, b, e = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-                        d2, qx, qy, qz, f = _closest_on_triangle(
-                            px, py, pz, points[a, 0], points[a, 1], points[a, 2],
-                            points[b, 0], points[b, 1], points[b, 2],
-                            points[e, 0], points[e, 1], points[e, 2])
-                        if d2 < best:
-                            best, bx, by, bz, bt, bf = d2, qx, qy, qz, t, f
-        if bt >= 0 and math.sqrt(best) <= k * cell:
-            break
+    if hint >= 0:
+        a, b, e = triangles[hint, 0], triangles[hint, 1], triangles[hint, 2]
+        best, bx, by, bz, bf = _closest_on_triangle(
+            px, py, pz, points[a, 0], points[a, 1], points[a, 2], points[b, 0], points[b, 1],
+            points[b, 2], points[e, 0], points[e, 1], points[e, 2])
+        bt = hint
+    top = 0
+    stack[0] = 0
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        if _box_distance_sq(px, py, pz, low, high, node) >= best:
+            continue
+        if child[node] < 0:
+            for s in range(first[node], first[node] + count[node]):
+                t = order[s]
+                a, b, e = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+                d2, qx, qy, qz, f = _closest_on_triangle(
+                    px, py, pz, points[a, 0], points[a, 1], points[a, 2],
+                    points[b, 0], points[b, 1], points[b, 2],
+                    points[e, 0], points[e, 1], points[e, 2])
+                if d2 < best:
+                    best, bx, by, bz, bt, bf = d2, qx, qy, qz, t, f
+            continue
+        left = child[node]
+        near, far = left, left + 1
+        if _box_distance_sq(px, py, pz, low, high, far) < \
+                _box_distance_sq(px, py, pz, low, high, near):
+            near, far = far, near
+        stack[top + 1] = far
+        stack[top + 2] = near
+        top += 2
     if bf == _FACE:
         nx, ny, nz = face_normals[bt, 0], face_normals[bt, 1], face_normals[bt, 2]
     elif bf <= _VERTEX_C:
@@ -228,95 +254,85 @@ def _nearest_signed(px, py, pz, points, triangles, face_normals, edge_normals, v
         nx, ny, nz = edge_normals[bt, e, 0], edge_normals[bt, e, 1], edge_normals[bt, e, 2]
     distance = math.sqrt(best)
     if (px - bx) * nx + (py - by) * ny + (pz - bz) * nz < 0.0:
-        return -distance
-    return distance
+        return -distance, bt
+    return distance, bt
 
 
 @njit(parallel=True, cache=True)
-def _exact_at(queries, points, triangles, face_normals, edge_normals, vertex_normals,
-              cell_start, cell_triangles, lower, cell, dims, out):
-    for q in prange(queries.shape[0]):
-        out[q] = _nearest_signed(queries[q, 0], queries[q, 1], queries[q, 2], points, triangles,
-                                 face_normals, edge_normals, vertex_normals, cell_start,
-                                 cell_triangles, lower, cell, dims)
+def _exact_at(queries, chunks, points, triangles, face_normals, edge_normals, vertex_normals,
+              low, high, child, first, count, order, out):
+    """Exact values at ``queries`` (q, 3), in ``chunks`` runs of consecutive queries; within a
+    run each query starts from the previous one's nearest triangle (fast for grid-ordered
+    queries, exact for any order)."""
+    n = queries.shape[0]
+    for c in prange(chunks):
+        stack = np.empty(_STACK, dtype=np.int64)
+        hint = -1
+        for q in range(c * n // chunks, (c + 1) * n // chunks):
+            out[q], hint = _nearest_signed(queries[q, 0], queries[q, 1], queries[q, 2], hint,
+                                           stack, points, triangles, face_normals, edge_normals,
+                                           vertex_normals, low, high, child, first, count, order)
 
 
 @njit(parallel=True, cache=True)
 def _exact_at_bricks(bricks, origin, spacing, points, triangles, face_normals, edge_normals,
-                     vertex_normals, cell_start, cell_triangles, lower, cell, dims, out):
+                     vertex_normals, low, high, child, first, count, order, out):
     """Fill ``out`` (k, BRICK + 1, BRICK + 1, BRICK + 1) with the exact values at the fine
-    nodes of the bricks ``bricks`` (k, 3) int (brick coordinates)."""
+    nodes of the bricks ``bricks`` (k, 3) int (brick coordinates); each node starts from its
+    neighbour's nearest triangle."""
     n = BRICK + 1
     for s in prange(bricks.shape[0] * n):
+        stack = np.empty(_STACK, dtype=np.int64)
         b = s // n
         a = s - b * n
         x = origin[0] + (bricks[b, 0] * BRICK + a) * spacing
+        row = -1
         for j in range(n):
             y = origin[1] + (bricks[b, 1] * BRICK + j) * spacing
+            hint = row
             for k in range(n):
                 z = origin[2] + (bricks[b, 2] * BRICK + k) * spacing
-                out[b, a, j, k] = _nearest_signed(x, y, z, points, triangles, face_normals,
-                                                  edge_normals, vertex_normals, cell_start,
-                                                  cell_triangles, lower, cell, dims)
+                out[b, a, j, k], hint = _nearest_signed(x, y, z, hint, stack, points, triangles,
+                                                        face_normals, edge_normals,
+                                                        vertex_normals, low, high, child, first,
+                                                        count, order)
+                if k == 0:
+                    row = hint
 
 
-@njit(cache=True)
-def _cell_range(points, triangles, t, axis, lower, cell, dims):
-    """First and last bucket cell along ``axis`` touched by triangle t's bounding box."""
-    a = points[triangles[t, 0], axis]
-    b = points[triangles[t, 1], axis]
-    c = points[triangles[t, 2], axis]
-    lo = min(max(int((min(a, min(b, c)) - lower[axis]) / cell), 0), dims[axis] - 1)
-    hi = min(max(int((max(a, max(b, c)) - lower[axis]) / cell), 0), dims[axis] - 1)
-    return lo, hi
-
-
-@njit(cache=True)
-def _buckets(points, triangles, lower, cell, dims, cursor, cell_triangles, count_only):
-    """Count the triangles per bucket cell into ``cursor`` (``count_only``), or write each
-    triangle into ``cell_triangles`` at its cells' cursors (advancing them)."""
-    for t in range(triangles.shape[0]):
-        i0, i1 = _cell_range(points, triangles, t, 0, lower, cell, dims)
-        j0, j1 = _cell_range(points, triangles, t, 1, lower, cell, dims)
-        k0, k1 = _cell_range(points, triangles, t, 2, lower, cell, dims)
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                for k in range(k0, k1 + 1):
-                    c = (i * dims[1] + j) * dims[2] + k
-                    if not count_only:
-                        cell_triangles[cursor[c]] = t
-                    cursor[c] += 1
-
-
-class _Surface:
-    """A closed triangle surface ready for exact signed distances: pseudo-normals and a bucket
-    grid of cell ``cell`` mm over the box ``[lower, lower + dims * cell]``."""
-
-    def __init__(self, points, triangles, lower, upper, cell, where):
-        self.points, self.triangles = checked_surface(points, triangles, where)
-        problems = surface_problems(self.points, self.triangles)
-        if problems:
-            raise MuscleMSSError(f"{where} {problems[0]}; a signed distance needs a closed, "
-                                 "outward-oriented surface")
-        self.face_normals, self.edge_normals, self.vertex_normals = _pseudo_normals(
-            self.points, self.triangles)
-        self.lower = np.asarray(lower, dtype=np.float64)
-        self.cell = float(cell)
-        self.dims = np.maximum(np.ceil((np.asarray(upper) - self.lower) / self.cell), 1) \
-            .astype(np.int64)
-        counts = np.zeros(int(self.dims.prod()), dtype=np.int64)
-        self.cell_triangles = np.empty(0, dtype=np.int64)
-        _buckets(self.points, self.triangles, self.lower, self.cell, self.dims, counts,
-                 self.cell_triangles, True)
-        self.cell_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self.cell_triangles = np.empty(int(self.cell_start[-1]), dtype=np.int64)
-        _buckets(self.points, self.triangles, self.lower, self.cell, self.dims,
-                 self.cell_start[:-1].copy(), self.cell_triangles, False)
-
-    def kernel_arguments(self):
-        return (self.points, self.triangles, self.face_normals, self.edge_normals,
-                self.vertex_normals, self.cell_start, self.cell_triangles, self.lower,
-                self.cell, self.dims)
+def _hierarchy(points, triangles):
+    """A bounding volume hierarchy of the triangles: each node's triangles split at the median
+    of their centroids along their longest extent, leaves of at most LEAF_SIZE, the two
+    children of a node stored side by side. Returns ``(low, high, child, first, count,
+    order)`` as :func:`_nearest_signed` takes them."""
+    m = len(triangles)
+    corners = points[triangles]                       # (m, 3, 3)
+    tri_low, tri_high = corners.min(axis=1), corners.max(axis=1)
+    centroid = corners.mean(axis=1)
+    order = np.arange(m, dtype=np.int64)
+    size = 2 * m + 1
+    low, high = np.empty((size, 3)), np.empty((size, 3))
+    child = np.full(size, -1, dtype=np.int64)
+    first, count = np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
+    count[0] = m
+    nodes, pending = 1, [0]
+    while pending:
+        node = pending.pop()
+        start, n = first[node], count[node]
+        members = order[start:start + n]
+        low[node], high[node] = tri_low[members].min(axis=0), tri_high[members].max(axis=0)
+        if n <= LEAF_SIZE:
+            continue
+        spread = centroid[members].max(axis=0) - centroid[members].min(axis=0)
+        axis = int(np.argmax(spread))
+        middle = n // 2
+        order[start:start + n] = members[np.argpartition(centroid[members, axis], middle)]
+        child[node] = nodes
+        first[nodes], count[nodes] = start, middle
+        first[nodes + 1], count[nodes + 1] = start + middle, n - middle
+        pending += [nodes, nodes + 1]
+        nodes += 2
+    return low[:nodes], high[:nodes], child[:nodes], first[:nodes], count[:nodes], order
 
 
 def _pseudo_normals(points, triangles):
@@ -353,22 +369,42 @@ def _pseudo_normals(points, triangles):
     return face, edge, vertex
 
 
+class _Surface:
+    """A closed triangle surface ready for exact signed distances: pseudo-normals and a
+    bounding volume hierarchy of its triangles."""
+
+    def __init__(self, points, triangles, where):
+        self.points, self.triangles = checked_surface(points, triangles, where)
+        problems = surface_problems(self.points, self.triangles)
+        if problems:
+            raise MuscleMSSError(f"{where} {problems[0]}; a signed distance needs a closed, "
+                                 "outward-oriented surface")
+        self.normals = _pseudo_normals(self.points, self.triangles)
+        self.hierarchy = _hierarchy(self.points, self.triangles)
+
+    def kernel_arguments(self):
+        return (self.points, self.triangles) + self.normals + self.hierarchy
+
+
 def exact_signed_distance(points, triangles, queries, where="surface") -> np.ndarray:
     """Exact signed distance (mm, negative inside) of ``queries`` (q, 3) mm to the closed,
     outward-oriented triangle surface ``points`` (n, 3) mm, ``triangles`` (m, 3): the nearest
-    triangle through a bucket grid, the sign by pseudo-normals. Returns (q,) float64."""
+    triangle through a bounding volume hierarchy, the sign by pseudo-normals. Returns (q,)
+    float64."""
     queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if not np.isfinite(queries).all():
         raise MuscleMSSError(f"{where}: the query points must have finite coordinates")
-    every = np.concatenate([points, queries])
-    lower, upper = every.min(axis=0), every.max(axis=0)
-    cell = max(float((upper - lower).max()) / 64.0, 1e-9)
-    surface = _Surface(points, triangles, lower, upper + 1e-9, cell, where)
+    surface = _Surface(points, triangles, where)
     out = np.empty(len(queries))
     if len(queries):
-        _exact_at(queries, *surface.kernel_arguments(), out)
+        _exact_at(queries, _chunks(len(queries)), *surface.kernel_arguments(), out)
     return out
+
+
+def _chunks(n):
+    """Runs of consecutive queries for :func:`_exact_at`: a few per thread."""
+    return max(1, min(n, 8 * numba.get_num_threads()))
 
 
 def bone_distance_field(points, triangles, spacing=DEFAULT_SPACING, band=DEFAULT_BAND,
@@ -397,21 +433,26 @@ def bone_distance_field(points, triangles, spacing=DEFAULT_SPACING, band=DEFAULT
     size = BRICK * spacing
     lower = points.min(axis=0) - padding
     dims = np.ceil((points.max(axis=0) + padding - lower) / size).astype(np.int64)
-    upper = lower + dims * size
-    surface = _Surface(points, triangles, lower, upper, size / 2.0, where)
+    surface = _Surface(points, triangles, where)
     args = surface.kernel_arguments()
     axes = [lower[k] + COARSE * spacing * np.arange(dims[k] * BRICK // COARSE + 1)
             for k in range(3)]
     corners = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     coarse = np.empty(len(corners))
-    _exact_at(corners, *args, coarse)
-    centres_axes = [lower[k] + size * (np.arange(dims[k]) + 0.5) for k in range(3)]
-    centres = np.stack(np.meshgrid(*centres_axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    at_centre = np.empty(len(centres))
-    _exact_at(centres, *args, at_centre)
-    # Every point of a brick is within half its diagonal of its centre (distance is 1-Lipschitz).
-    near = np.abs(at_centre) <= band + 0.5 * math.sqrt(3.0) * size
-    brick_index = np.full(len(centres), -1, dtype=np.int32)
+    _exact_at(corners, _chunks(len(corners)), *args, coarse)
+    # Every point of a brick is within half a coarse cell's diagonal of one of the brick's
+    # coarse nodes, and distance is 1-Lipschitz: a brick whose nodes are all farther than
+    # band + that from the surface holds no point within band of it.
+    per = BRICK // COARSE
+    nodes = np.abs(coarse).reshape(tuple(dims * per + 1))
+    nearest = np.full(tuple(dims), np.inf)
+    for a in range(per + 1):
+        for b in range(per + 1):
+            for c in range(per + 1):
+                nearest = np.minimum(nearest, nodes[a::per, b::per, c::per][:dims[0], :dims[1],
+                                                                            :dims[2]])
+    near = (nearest <= band + 0.5 * math.sqrt(3.0) * COARSE * spacing).reshape(-1)
+    brick_index = np.full(len(near), -1, dtype=np.int32)
     brick_index[near] = np.arange(int(near.sum()), dtype=np.int32)
     coords = np.stack(np.unravel_index(np.flatnonzero(near), tuple(dims)), axis=1) \
         .astype(np.int64)
@@ -756,3 +797,27 @@ def reference_push_out(points, triangles, queries, radii) -> np.ndarray:
                              for e in np.eye(3)])
             out[q] += (radii[q] - d) * grad / np.linalg.norm(grad)
     return out
+
+
+def fitted_rigid_transform(rest, posed, where="bone") -> np.ndarray:
+    """The rigid 3x4 transform ``M`` with ``posed = rest @ M[:, :3].T + M[:, 3]`` (least squares,
+    Kabsch), for a bone given at rest and posed: (n, 3) mm each, the same vertices in the same
+    order. Raises :class:`MuscleMSSError` naming ``where`` when ``posed`` is not a rigid motion
+    of ``rest`` (off by more than 1e-5 of the bone's size)."""
+    rest = _checked_points(rest, f"{where} (rest)")
+    posed = _checked_points(posed, f"{where} (posed)")
+    if rest.shape != posed.shape or len(rest) < 3:
+        raise MuscleMSSError(f"{where}: the posed bone has {len(posed)} points and the rest bone "
+                             f"{len(rest)}; connect the bones the pose was made from")
+    rest_centre, posed_centre = rest.mean(axis=0), posed.mean(axis=0)
+    u, _, vt = np.linalg.svd((rest - rest_centre).T @ (posed - posed_centre))
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T)) or 1.0])
+    rotation = vt.T @ flip @ u.T
+    transform = np.hstack([rotation, (posed_centre - rotation @ rest_centre)[:, None]])
+    off = float(np.abs(rest @ rotation.T + transform[:, 3] - posed).max())
+    size = float(np.ptp(rest, axis=0).max())
+    if off > 1e-5 * max(size, 1.0):
+        raise MuscleMSSError(f"{where}: the posed bone is not a rigid motion of the rest bone "
+                             f"(off by {off:.3g} mm); connect the rest bones (bones.vtm) and the "
+                             "Rigid Pose Transform's PosedBones made from them")
+    return transform
