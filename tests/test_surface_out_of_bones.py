@@ -110,3 +110,25 @@ def test_without_bones_nothing_is_reported_and_one_bone_input_alone_is_refused()
                                   for n, b in V.blocks(moved_off)])
     with pytest.raises(MuscleMSSError, match="PosedBones block 'femur'.*not a rigid motion"):
         run(moved(model, lambda p: p), surfaces, model, bones, squashed)
+
+
+def test_small_demo_at_its_most_flexed_pose_has_no_surface_vertex_newly_in_a_bone(
+        small_scene_dir):
+    from muscle_mss.core.bone_distance import exact_signed_distance
+    from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
+    p = build_pipeline(small_scene_dir)
+    index = int(np.argmin(np.abs(np.asarray(p.times) - 0.75)))
+    result = solve_time_point(p, index)
+    assert sum(r[A.NEW_IN_BONE_VERTICES] for r in result.rows) > 0     # the push had work
+    for row in result.rows:
+        assert row[A.NEW_IN_BONE_VERTICES_AFTER] == 0, row
+        assert row[A.NEW_IN_BONE_DEPTH_AFTER_MM] == 0.0, row
+    # Checked against the exact distance to the posed bone surfaces: the pushed vertices are
+    # out of every bone up to the field's interpolation error (well under 0.1 mm here).
+    bones = [(V.points_of(b), V.triangles_of(b))
+             for _, b in V.blocks(update_at(p.pose, 1, p.times[index]))]
+    for name, surface in V.blocks(result.surfaces):
+        pushed = V.points_of(surface)[V.point_array(surface, A.NEW_IN_BONE_DEPTH) > 0]
+        for points, triangles in bones:
+            if len(pushed):
+                assert exact_signed_distance(points, triangles, pushed).min() > -0.1, name
