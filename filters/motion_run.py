@@ -33,12 +33,14 @@ SUMMARY_COLUMNS = ("time", "muscle", "rest_volume", "volume", "volume_error_pct"
                    "mean_fibre_strain", "max_fibre_strain", "sphere_overlap_mm",
                    A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
                    A.NEW_IN_BONE_DEPTH_AFTER_MM, "free_particles_in_bone",
-                   "free_particle_bone_depth_mm", "iterations", "seconds")
+                   "free_particle_bone_depth_mm", "free_particles_new_in_bone",
+                   "free_particle_new_in_bone_depth_mm", "iterations", "seconds")
 """``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
 other objects (:mod:`muscle_mss.core.penetration`); ``new_in_bone_*``: deformed surface vertices
 inside a bone they were outside at rest, before and after the MVC Surface Deformer pushes them
 out; ``free_particle*``: solved particles that are not tendon attachments with their centre
-inside a bone, and the deepest (by the bones' signed distance fields)."""
+inside a bone, and the deepest (by the bones' signed distance fields), all of them and those
+whose rest position was outside that bone (``*new_in_bone*``)."""
 SERIES = ("surfaces", "fibres", "particles")
 
 
@@ -173,15 +175,18 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             **{c: _count_or_depth(c, table[c][r]) for c in IN_BONE_COLUMNS},
             "free_particles_in_bone": in_bone[name][0],
             "free_particle_bone_depth_mm": in_bone[name][1],
+            "free_particles_new_in_bone": in_bone[name][2],
+            "free_particle_new_in_bone_depth_mm": in_bone[name][3],
             "iterations": iterations, "seconds": seconds,
         })
     return TimePointResult(index, t, rows, surfaces, fibres, particles, convergence, seconds)
 
 
 def free_particles_in_bones(p: Pipeline, particles, posed_bones) -> dict:
-    """``{muscle: (count, deepest mm)}`` of the solved particles that are not fixed (tendon
-    attachments belong inside their bone) with their centre inside a posed bone, by the bone
-    fields the MVC Surface Deformer keeps."""
+    """``{muscle: (count, deepest mm, new count, new deepest mm)}`` of the solved particles
+    that are not fixed (tendon attachments belong inside their bone) with their centre inside a
+    posed bone, all and those whose rest position was outside that bone, by the bone fields the
+    MVC Surface Deformer keeps."""
     from muscle_mss.core.bone_distance import signed_distances
     from .mvc_surface_deformer import INSIDE_TOLERANCE, posed_bone_transforms
     fields, rest_points = p.deformer.bone_fields(p.bones.GetOutputDataObject(0))
@@ -189,10 +194,12 @@ def free_particles_in_bones(p: Pipeline, particles, posed_bones) -> dict:
     out = {}
     for name, block in V.blocks(particles, "solved model"):
         free = V.point_array(block, A.FIXED) == 0
-        distance = signed_distances(fields, V.points_of(block)[free], transforms)[0]
-        depth = -distance.min(axis=1, initial=np.inf)
+        rest = V.point_array(block, A.REST_POSITION, dtype=np.float64).reshape(-1, 3)[free]
+        depth = -signed_distances(fields, V.points_of(block)[free], transforms)[0]   # (n, b)
         inside = depth > INSIDE_TOLERANCE
-        out[name] = (int(inside.sum()), float(depth[inside].max(initial=0.0)))
+        new = inside & (signed_distances(fields, rest)[0] >= -INSIDE_TOLERANCE)
+        out[name] = tuple(v for mask in (inside, new) for v in (
+            int(mask.any(axis=1).sum()), float(np.where(mask, depth, 0.0).max(initial=0.0))))
     return out
 
 

@@ -45,7 +45,6 @@ from .properties import Property
 _WEIGHTS_PROGRESS = 0.9
 INSIDE_TOLERANCE = 1e-3
 """mm: a surface vertex counts as inside a bone when its signed distance is below minus this."""
-BONES_PORT = 3  # index of the RestBones input (PosedBones follows it)
 
 
 @dataclass(frozen=True)

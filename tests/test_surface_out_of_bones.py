@@ -123,6 +123,8 @@ def test_small_demo_at_its_most_flexed_pose_has_no_surface_vertex_newly_in_a_bon
     for row in result.rows:
         assert row[A.NEW_IN_BONE_VERTICES_AFTER] == 0, row
         assert row[A.NEW_IN_BONE_DEPTH_AFTER_MM] == 0.0, row
+        assert 0 <= row["free_particles_new_in_bone"] <= row["free_particles_in_bone"]
+        assert (row["free_particle_bone_depth_mm"] > 0) == (row["free_particles_in_bone"] > 0)
     # Checked against the exact distance to the posed bone surfaces: the pushed vertices are
     # out of every bone up to the field's interpolation error (well under 0.1 mm here).
     bones = [(V.points_of(b), V.triangles_of(b))
