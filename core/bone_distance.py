@@ -33,6 +33,13 @@ is ``radius`` outside every bone it is checked against, from whatever depth it s
 steps ``x += (radius - d) grad d``: one step for an exact distance, a few for the
 interpolated one). The module stands apart from the solver; ``muscle_mss.filters`` uses it to keep
 deformed muscle surfaces out of bones.
+
+For a solver (issue 14): build the set once per rest bones (:func:`bone_field_set`, or the MVC
+Surface Deformer's cached ``bone_fields``), and per pose call ``push_out_of_bones(fields,
+centres, radii, transforms, active=~fixed)`` with the bones' (b, 3, 4) rest-to-posed
+transforms (``muscle_mss.core.pose.pose_at``); add the returned (n, 3) displacements. Inside a
+Numba loop, ``_push_rest`` / ``_sample`` take a bone index, a rest-frame point and
+``*fields.arrays()``, and ``_to_rest`` maps a posed point to bone b's rest frame.
 """
 from __future__ import annotations
 
