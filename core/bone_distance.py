@@ -64,6 +64,9 @@ DEFAULT_BAND = 4.0
 Collision sphere radii of the demo muscles are below it."""
 DEFAULT_PADDING = 8.0
 """mm the sampled box extends beyond the bone's bounding box."""
+MAX_VALUES = 2 ** 26
+"""Sampled values one bone's field may hold (256 MiB of float32): a finer spacing is refused
+with an error rather than exhausting memory."""
 PUSH_STEPS = 32
 """Newton steps per point and bone at most in :func:`push_out_of_bones`."""
 PUSH_SWEEPS = 4
@@ -442,6 +445,7 @@ def bone_distance_field(points, triangles, spacing=DEFAULT_SPACING, band=DEFAULT
     dims = np.ceil((points.max(axis=0) + padding - lower) / size).astype(np.int64)
     surface = _Surface(points, triangles, where)
     args = surface.kernel_arguments()
+    _check_size(int(np.prod(dims * (BRICK // COARSE) + 1)), "coarse", spacing, where)
     axes = [lower[k] + COARSE * spacing * np.arange(dims[k] * BRICK // COARSE + 1)
             for k in range(3)]
     corners = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -459,6 +463,7 @@ def bone_distance_field(points, triangles, spacing=DEFAULT_SPACING, band=DEFAULT
                 nearest = np.minimum(nearest, nodes[a::per, b::per, c::per][:dims[0], :dims[1],
                                                                             :dims[2]])
     near = (nearest <= band + 0.5 * math.sqrt(3.0) * COARSE * spacing).reshape(-1)
+    _check_size(int(near.sum()) * (BRICK + 1) ** 3, "fine", spacing, where)
     brick_index = np.full(len(near), -1, dtype=np.int32)
     brick_index[near] = np.arange(int(near.sum()), dtype=np.int32)
     coords = np.stack(np.unravel_index(np.flatnonzero(near), tuple(dims)), axis=1) \
@@ -469,6 +474,13 @@ def bone_distance_field(points, triangles, spacing=DEFAULT_SPACING, band=DEFAULT
     return BoneDistanceField(origin=lower, spacing=spacing, dims=dims,
                              coarse=coarse.astype(np.float32), brick_index=brick_index,
                              bricks=fine.astype(np.float32))
+
+
+def _check_size(values, kind, spacing, where):
+    if values > MAX_VALUES:
+        raise MuscleMSSError(f"{where}: a distance field with spacing {spacing:g} mm would hold "
+                             f"{values:,} {kind} values (at most {MAX_VALUES:,}); choose a "
+                             "larger spacing")
 
 
 def bone_field_set(bones, spacing=DEFAULT_SPACING, band=DEFAULT_BAND, padding=DEFAULT_PADDING,

@@ -179,6 +179,8 @@ def test_bad_surfaces_and_arguments_are_refused_with_the_bone_named():
         bone_distance_field(points, triangles[:-1], where="bones.vtm block 'femur'")
     with pytest.raises(MuscleMSSError, match="femur.*spacing"):
         bone_distance_field(points, triangles, spacing=0.0, where="bones.vtm block 'femur'")
+    with pytest.raises(MuscleMSSError, match="femur.*spacing 0.01 mm would hold .* larger"):
+        bone_distance_field(points, triangles, spacing=0.01, where="bones.vtm block 'femur'")
     field = bone_field_set([BOX])
     with pytest.raises(MuscleMSSError, match="transforms"):
         signed_distances(field, np.zeros((1, 3)), np.zeros((2, 3, 4)))
