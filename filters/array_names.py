@@ -27,6 +27,10 @@ DAMPING = "damping"                  # float64, g/s (along the spring)
 FIBRE_LENGTH = "fibre_length"        # float64, mm
 FIBRE_STRAIN = "fibre_strain"        # float64, length / rest length - 1
 
+# Point data of the deformed surfaces (MVC Surface Deformer with bones).
+NEW_IN_BONE_DEPTH = "new_in_bone_depth"  # float64, mm a vertex outside a bone at rest was inside
+#                                          it before the push out (0 elsewhere)
+
 # Columns of the Volume-Error Probe's table (besides the field-data names below).
 MUSCLE = "muscle"                    # string, the muscle (block) name; last row "mean"
 
@@ -36,5 +40,10 @@ BONE_NAMES = "bone_names"            # string x B, order of the bone_weights com
 REST_VOLUME = "rest_volume"          # float64, mm^3 (Volume-Error Probe)
 VOLUME = "volume"                    # float64, mm^3
 VOLUME_ERROR_PCT = "volume_error_pct"  # float64, %
+NEW_IN_BONE_VERTICES = "new_in_bone_vertices"  # float64, surface vertices inside a posed bone
+#                                                they were outside at rest, before the push out
+NEW_IN_BONE_DEPTH_MM = "new_in_bone_depth_mm"  # float64, mm, the deepest of them
+NEW_IN_BONE_VERTICES_AFTER = "new_in_bone_vertices_after_push"  # the same after the push out
+NEW_IN_BONE_DEPTH_AFTER_MM = "new_in_bone_depth_after_push_mm"  # (NaN: no bones connected)
 PROJECTION_PASSES = "projection_passes"  # float64, collision passes after the last iteration
 REMAINING_PENETRATION = "remaining_penetration"  # float64, mm, deepest overlap they left

@@ -74,12 +74,13 @@ class ProgressBar:
 
 def summary_table(rows) -> str:
     """Per muscle over the whole motion: mean and max volume error, max fibre strain, max
-    penetration, mean iterations and seconds per time point; then the mean over muscles."""
+    sphere overlap, deepest surface vertex newly in a bone before the push out, mean iterations
+    and seconds per time point; then the mean over muscles."""
     by_muscle = {}
     for r in rows:
         by_muscle.setdefault(r["muscle"], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
-              f"{'max pen mm':>10s} {'iters':>6s} {'s/time':>7s}")
+              f"{'overlap mm':>10s} {'in bone mm':>10s} {'iters':>6s} {'s/time':>7s}")
     lines = [header, "-" * len(header)]
     means = []
     for name, rs in by_muscle.items():
@@ -87,12 +88,19 @@ def summary_table(rows) -> str:
         means.append(sum(err) / len(err))
         lines.append(f"{name:28s} {means[-1]:14.2f} {max(err):7.2f} "
                      f"{max(float(r['max_fibre_strain']) for r in rs):10.3f} "
-                     f"{max(float(r['max_penetration_mm']) for r in rs):10.3f} "
+                     f"{max(float(r['sphere_overlap_mm']) for r in rs):10.3f} "
+                     f"{_deepest(rs, 'new_in_bone_depth_mm'):>10s} "
                      f"{sum(int(r['iterations']) for r in rs) / len(rs):6.0f} "
                      f"{sum(float(r['seconds']) for r in rs) / len(rs):7.2f}")
     lines.append("-" * len(header))
     lines.append(f"{'mean over muscles':28s} {sum(means) / max(len(means), 1):14.2f}")
     return "\n".join(lines)
+
+
+def _deepest(rows, column) -> str:
+    """The largest value of a column as text, "-" when no row has one (no bones connected)."""
+    values = [float(r[column]) for r in rows if r[column] != ""]
+    return f"{max(values):.3f}" if values else "-"
 
 
 def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene) -> list:

@@ -31,10 +31,20 @@ from muscle_mss.core.scene import MOTION_FILE
 from . import array_names as A
 from . import vtk_arrays as V
 from .scene_io import scene_readers
+from .volume_error_probe import IN_BONE_COLUMNS
 
 SUMMARY_COLUMNS = ("time", "muscle", "rest_volume", "volume", "volume_error_pct",
-                   "mean_fibre_strain", "max_fibre_strain", "max_penetration_mm",
-                   "iterations", "seconds")
+                   "mean_fibre_strain", "max_fibre_strain", "sphere_overlap_mm",
+                   A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
+                   A.NEW_IN_BONE_DEPTH_AFTER_MM, "free_particles_in_bone",
+                   "free_particle_bone_depth_mm", "free_particles_new_in_bone",
+                   "free_particle_new_in_bone_depth_mm", "iterations", "seconds")
+"""``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
+other objects (:mod:`muscle_mss.core.penetration`); ``new_in_bone_*``: deformed surface vertices
+inside a bone they were outside at rest, before and after the MVC Surface Deformer pushes them
+out; ``free_particle*``: solved particles that are not tendon attachments with their centre
+inside a bone, and the deepest (by the bones' signed distance fields), all of them and those
+whose rest position was outside that bone (``*new_in_bone*``)."""
 SERIES = ("surfaces", "fibres", "particles")
 RUN_FILES = ("summary.csv", "surfaces.pvd", "fibres.pvd", "particles.pvd", "convergence.png",
              "poses.png", "series", "convergence")
@@ -83,6 +93,8 @@ def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
     deformer.SetInputConnection(0, solver.GetOutputPort(0))
     deformer.SetInputConnection(1, muscles.GetOutputPort())
     deformer.SetInputConnection(2, springs.GetOutputPort())
+    deformer.SetInputConnection(3, bones.GetOutputPort())
+    deformer.SetInputConnection(4, pose.GetOutputPort(1))
     probe.SetInputConnection(0, deformer.GetOutputPort(0))
     probe.SetInputConnection(1, muscles.GetOutputPort())
     filters = (resampler, springs, pose, solver, deformer, probe)
@@ -150,6 +162,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     penetration = max_penetration_per_object(
         np.concatenate(centres), np.concatenate(radii), np.concatenate(owner), len(names),
         bone_centres, bone_radii, np.concatenate(fixed))
+    in_bone = free_particles_in_bones(p, particles, bones)
 
     fibre_stats = {}
     for name, block in V.blocks(fibres, "deformed fibres"):
@@ -165,10 +178,44 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             "rest_volume": float(table[A.REST_VOLUME][r]), "volume": float(table[A.VOLUME][r]),
             "volume_error_pct": float(table[A.VOLUME_ERROR_PCT][r]),
             "mean_fibre_strain": fibre_stats[name][0], "max_fibre_strain": fibre_stats[name][1],
-            "max_penetration_mm": float(penetration[k]),
+            "sphere_overlap_mm": float(penetration[k]),
+            **{c: _count_or_depth(c, table[c][r]) for c in IN_BONE_COLUMNS},
+            "free_particles_in_bone": in_bone[name][0],
+            "free_particle_bone_depth_mm": in_bone[name][1],
+            "free_particles_new_in_bone": in_bone[name][2],
+            "free_particle_new_in_bone_depth_mm": in_bone[name][3],
             "iterations": iterations, "seconds": seconds,
         })
     return TimePointResult(index, t, rows, surfaces, fibres, particles, convergence, seconds)
+
+
+def free_particles_in_bones(p: Pipeline, particles, posed_bones) -> dict:
+    """``{muscle: (count, deepest mm, new count, new deepest mm)}`` of the solved particles
+    that are not fixed (tendon attachments belong inside their bone) with their centre inside a
+    posed bone, all and those whose rest position was outside that bone, by the bone fields the
+    MVC Surface Deformer keeps."""
+    from muscle_mss.core.bone_distance import signed_distances
+    from .mvc_surface_deformer import INSIDE_TOLERANCE, posed_bone_transforms
+    fields, rest_points = p.deformer.bone_fields(p.bones.GetOutputDataObject(0))
+    transforms = posed_bone_transforms(rest_points, posed_bones)
+    out = {}
+    for name, block in V.blocks(particles, "solved model"):
+        free = V.point_array(block, A.FIXED) == 0
+        rest = V.point_array(block, A.REST_POSITION, dtype=np.float64).reshape(-1, 3)[free]
+        depth = -signed_distances(fields, V.points_of(block)[free], transforms)[0]   # (n, b)
+        inside = depth > INSIDE_TOLERANCE
+        new = inside & (signed_distances(fields, rest)[0] >= -INSIDE_TOLERANCE)
+        out[name] = tuple(v for mask in (inside, new) for v in (
+            int(mask.any(axis=1).sum()), float(np.where(mask, depth, 0.0).max(initial=0.0))))
+    return out
+
+
+def _count_or_depth(column, value):
+    """A table value for summary.csv: counts as int, NaN (no bones connected) as empty."""
+    if not np.isfinite(value):
+        return ""
+    return int(value) if column in (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_VERTICES_AFTER) \
+        else float(value)
 
 
 def _copy(data):

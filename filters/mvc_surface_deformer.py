@@ -9,6 +9,18 @@ weighted sum of the current cage positions.
 Memory: the weights are dense float64, 8 x (surface vertices) x (cage vertices) bytes per
 muscle. The full demo at N = 80 (about 1100 surface vertices, 2312 cage vertices per muscle)
 keeps about 20 MB per muscle, 260 MB for its 13 muscles.
+
+Surfaces kept out of bones (issue 12). The cage follows the collision spheres, and between
+them the surface can sink into a bone. With the optional RestBones and PosedBones inputs, each
+bone gets a signed distance field (:mod:`muscle_mss.core.bone_distance`, sampled once in the
+rest frame, rebuilt only when RestBones or BoneFieldSpacing change) and every deformed vertex
+that is inside a posed bone but was outside that bone at rest is pushed out onto its surface
+along the distance gradient (``KeepOutOfBones``); vertices inside a bone at rest (a muscle
+pressed against its bone) are left alone. Each bone's posed transform is fitted from its rest
+and posed vertices. Reported per muscle: the point array ``new_in_bone_depth`` and the field
+data ``new_in_bone_vertices`` / ``new_in_bone_depth_mm`` (before the push) and
+``new_in_bone_vertices_after_push`` / ``new_in_bone_depth_after_push_mm``; a vertex counts as
+inside when deeper than :data:`INSIDE_TOLERANCE`.
 """
 from __future__ import annotations
 
@@ -17,6 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 from vtkmodules.vtkFiltersCore import vtkPolyDataNormals
 
+from muscle_mss.core.bone_distance import (DEFAULT_SPACING, BoneFieldSet, bone_distance_field,
+                                           fitted_rigid_transform, push_out_of_bones,
+                                           signed_distances)
 from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
@@ -24,9 +39,12 @@ from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
+from .properties import Property
 
 # Share of the progress bar taken by the weights when they are (re)computed.
 _WEIGHTS_PROGRESS = 0.9
+INSIDE_TOLERANCE = 1e-3
+"""mm: a surface vertex counts as inside a bone when its signed distance is below minus this."""
 
 
 @dataclass(frozen=True)
@@ -65,7 +83,14 @@ class MVCSurfaceDeformer(MuscleFilter):
             "computed once from the rest surfaces and the rest model and reused at every time "
             "point. Outputs the deformed surfaces with recomputed normals and point data "
             "displacement (mm), and each muscle's fibres as polylines through its particles "
-            "with cell data fibre_length (mm) and fibre_strain (length / rest length - 1).")
+            "with cell data fibre_length (mm) and fibre_strain (length / rest length - 1). "
+            "With RestBones (bones.vtm) and PosedBones (the Rigid Pose Transform's second "
+            "output) connected, vertices that end inside a posed bone but were outside it at "
+            "rest are pushed out onto the bone's surface (KeepOutOfBones; a signed distance "
+            "field per bone, built once), and each surface reports them: point data "
+            "new_in_bone_depth, field data new_in_bone_vertices and new_in_bone_depth_mm "
+            "(before the push), new_in_bone_vertices_after_push and "
+            "new_in_bone_depth_after_push_mm.")
     INPUTS = (
         Port("SolvedModel", "vtkMultiBlockDataSet",
              "the MSS Collision Solver's model: one block per muscle, points = current "
@@ -76,6 +101,12 @@ class MVCSurfaceDeformer(MuscleFilter):
              "the Spring Builder's model (rest pose): point data rest_position, fibre_id, "
              "fibre_index, boundary, optional fibre_grid; unchanged over time, so the "
              "coordinates computed from it are kept"),
+        Port("RestBones", "vtkMultiBlockDataSet",
+             "Optional, with PosedBones: bones.vtm, the rest bone surfaces; deformed vertices "
+             "are then kept out of the bones they were outside at rest", optional=True),
+        Port("PosedBones", "vtkMultiBlockDataSet",
+             "Optional, with RestBones: the Rigid Pose Transform's PosedBones (the same bones "
+             "at the current time)", optional=True),
     )
     OUTPUTS = (
         Port("DeformedSurfaces", "vtkMultiBlockDataSet",
@@ -85,13 +116,60 @@ class MVCSurfaceDeformer(MuscleFilter):
              "one polyline per fibre through its particles, cell data fibre_id, fibre_length "
              "(mm), fibre_strain, fibre_grid when present"),
     )
-    PROPERTIES = ()
+    PROPERTIES = (
+        Property("KeepOutOfBones", "bool", True,
+                 "Push deformed surface vertices that end inside a posed bone, but were outside "
+                 "it at rest, out onto the bone's surface (needs RestBones and PosedBones). Off: "
+                 "they are only counted.", group="Bones"),
+        Property("BoneFieldSpacing", "double", DEFAULT_SPACING,
+                 "Grid step (mm) of each bone's signed distance field near its surface; the "
+                 "field is exact on flat bone and off by about spacing^2 / (8 R) where the bone "
+                 "curves with radius R. Memory and time grow as 1 / spacing^3 (1 mm: 6-9 MiB "
+                 "and seconds per bone of the demo thigh).", minimum=0.25, group="Bones"),
+    )
 
     def __init__(self):
         super().__init__()
         self._rest_key = None
         self._bindings = None
         self.weight_computations = 0
+        self._bone_key = None
+        self._bones = None
+        self.field_computations = 0
+        self._outside_key = None
+        self._outside = None
+
+    # ---- the cached bone side ------------------------------------------------------------------
+    def bone_fields(self, rest_bones):
+        """``(BoneFieldSet, {bone name: rest vertices (n, 3) mm})`` of the rest bones, built
+        only when they (or BoneFieldSpacing) changed since the last call."""
+        key = (_modification_key(rest_bones, "RestBones"), self.value("BoneFieldSpacing"))
+        if key != self._bone_key:
+            items = V.polydata_blocks(rest_bones, "RestBones", "a bone's triangle surface")
+            if not items:
+                raise MuscleMSSError("RestBones: has no blocks; connect bones.vtm")
+            fields, rest_points = [], {}
+            for i, (name, block) in enumerate(items):
+                where = f"RestBones block '{name}'"
+                rest_points[name] = V.points_of(block)
+                fields.append(bone_distance_field(rest_points[name], V.triangles_of(block, where),
+                                                  spacing=self.value("BoneFieldSpacing"),
+                                                  where=where))
+                if self.progress((i + 1) / len(items)):
+                    raise MuscleMSSError("aborted while sampling the bones' distance fields")
+            self._bones = (BoneFieldSet.pack(fields, list(rest_points)), rest_points)
+            self._bone_key = key
+            self.field_computations += 1
+        return self._bones
+
+    def _outside_at_rest(self, bindings, fields):
+        """``{muscle: (v, b) bool}``: which rest surface vertices are outside which bone."""
+        key = (self._rest_key, self._bone_key)
+        if key != self._outside_key:
+            self._outside = {name: signed_distances(fields, b.rest_points)[0] >= -INSIDE_TOLERANCE
+                             for name, b in bindings.items()}
+            self._outside_key = key
+        return self._outside
 
     # ---- the cached rest-pose side -----------------------------------------------------------
     def bindings(self, rest_surfaces, rest_model) -> dict:
@@ -126,8 +204,16 @@ class MVCSurfaceDeformer(MuscleFilter):
 
     # ---- every time point ----------------------------------------------------------------------
     def execute(self, inputs, outputs):
-        solved, rest_surfaces, rest_model = inputs
+        solved, rest_surfaces, rest_model, rest_bones, posed_bones = inputs
         bindings = self.bindings(rest_surfaces, rest_model)
+        bones = None
+        if (rest_bones is None) != (posed_bones is None):
+            raise MuscleMSSError("connect both RestBones (bones.vtm) and PosedBones (the Rigid "
+                                 "Pose Transform's PosedBones), or neither")
+        if rest_bones is not None:
+            fields, rest_points = self.bone_fields(rest_bones)
+            bones = (fields, posed_bone_transforms(rest_points, posed_bones),
+                     self._outside_at_rest(bindings, fields), self.value("KeepOutOfBones"))
         blocks = V.blocks(solved, where="SolvedModel")
         names = [n for n, _ in blocks]
         for name in bindings:
@@ -139,7 +225,7 @@ class MVCSurfaceDeformer(MuscleFilter):
             if name not in bindings:
                 raise MuscleMSSError(f"SolvedModel block '{name}': RestModel has no muscle of "
                                      "that name; block names must match")
-            surface, polylines = _deform_muscle(name, block, bindings[name])
+            surface, polylines = _deform_muscle(name, block, bindings[name], bones)
             surfaces.append((name, surface))
             fibres.append((name, polylines))
         V.fill_multiblock(outputs[0], surfaces)
@@ -189,7 +275,44 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
                          fibre_ids, grid, rest_lengths)
 
 
-def _deform_muscle(name, block, binding: MuscleBinding):
+def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
+    """(b, 3, 4) rest-to-posed transforms of the bones ``rest_points`` ({name: (n, 3) mm}),
+    fitted to the blocks of the same names in ``posed_bones``."""
+    posed = dict(V.polydata_blocks(posed_bones, "PosedBones", "a bone's triangle surface"))
+    transforms = []
+    for name, points in rest_points.items():
+        if name not in posed:
+            raise MuscleMSSError(f"PosedBones: has no block '{name}'; it must hold the bones of "
+                                 "RestBones (block names must match)")
+        transforms.append(fitted_rigid_transform(points, V.points_of(posed[name]),
+                                                 where=f"PosedBones block '{name}'"))
+    return np.array(transforms).reshape(-1, 3, 4)
+
+
+def new_in_bones(fields, transforms, points, outside):
+    """``(count, deepest mm, depth (n,) mm)`` of the ``points`` (n, 3) inside a posed bone they
+    were ``outside`` (n, b) at rest (depth 0 for the others)."""
+    distance, _ = signed_distances(fields, points, transforms)
+    new = (distance < -INSIDE_TOLERANCE) & outside
+    depth = np.where(new, -distance, 0.0).max(axis=1, initial=0.0)
+    return int(new.any(axis=1).sum()), float(depth.max(initial=0.0)), depth
+
+
+def _keep_out_of_bones(deformed, fields, transforms, outside, push):
+    """``deformed`` (v, 3) with the vertices newly inside a bone pushed out (when ``push``),
+    and what to report: ``{array or field name: value}``."""
+    count, deepest, depth = new_in_bones(fields, transforms, deformed, outside)
+    after = (count, deepest)
+    if push and count:
+        deformed = deformed + push_out_of_bones(fields, deformed, None, transforms,
+                                                active=outside, tolerance=INSIDE_TOLERANCE)
+        after = new_in_bones(fields, transforms, deformed, outside)[:2]
+    return deformed, {A.NEW_IN_BONE_DEPTH: depth, A.NEW_IN_BONE_VERTICES: count,
+                      A.NEW_IN_BONE_DEPTH_MM: deepest, A.NEW_IN_BONE_VERTICES_AFTER: after[0],
+                      A.NEW_IN_BONE_DEPTH_AFTER_MM: after[1]}
+
+
+def _deform_muscle(name, block, binding: MuscleBinding, bones=None):
     where = f"SolvedModel block '{name}'"
     current = V.points_of(block)
     if len(current) != len(binding.rest_positions):
@@ -205,8 +328,17 @@ def _deform_muscle(name, block, binding: MuscleBinding):
             raise MuscleMSSError(f"{where}: its rest_position differs from RestModel's; the "
                                  "solved model must come from the same Spring Builder output")
     deformed = mvc_deform(binding.weights, current[binding.cage.vertices])
+    report = {}
+    if bones is not None:
+        fields, transforms, outside, push = bones
+        deformed, report = _keep_out_of_bones(deformed, fields, transforms, outside[name], push)
     surface = _with_normals(V.with_points(binding.surface, deformed))
     V.set_point_array(surface, A.DISPLACEMENT, deformed - binding.rest_points)
+    for key, value in report.items():
+        if key == A.NEW_IN_BONE_DEPTH:
+            V.set_point_array(surface, key, value)
+        else:
+            V.set_field(surface, key, value)
     V.set_field(surface, A.MUSCLE_NAME, name)
 
     counts = np.diff(binding.offsets)

@@ -22,6 +22,7 @@ spheres of different objects overlap at rest.
 from __future__ import annotations
 
 import numpy as np
+from vtkmodules.vtkCommonCore import vtkOutputWindow
 
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, clear_of_obstacles,
@@ -37,6 +38,11 @@ from .bone_sets import bone_sphere_set
 from .properties import Property
 
 LAYOUTS = ("lattice-6", "lattice-26", "Delaunay", "k-NN")
+NO_BONES_WARNING = (
+    "the Bones input is not connected, so the muscle spheres are not cleared of the bones: "
+    "spheres that overlap a bone at rest are pushed out by the MSS Collision Solver even when "
+    "nothing moves, and the rest pose can crush a muscle. Connect bones.vtm (the reader that "
+    "feeds the Rigid Pose Transform's Bones) to the Spring Builder's Bones input.")
 LATTICE_NEIGHBOURHOOD = {"lattice-6": 6, "lattice-26": 26}
 PARTICLES = "particles"
 
@@ -80,14 +86,19 @@ class SpringBuilder(MuscleFilter):
             "lattice when the fibres have a fibre_grid, else the particles nearest to the muscle "
             "surface's vertices. Radii follow the paper's heuristic (or the simpler rule) and "
             "are then shrunk so that spheres of different muscles do not overlap at rest, nor "
-            "(with the optional Bones input) muscle spheres and bone spheres.")
+            "(with the optional Bones input) muscle spheres and bone spheres. Connect bones.vtm "
+            "to Bones (the same reader as the Rigid Pose Transform's Bones): without it the "
+            "filter warns, since muscle spheres that overlap a bone at rest are pushed out by "
+            "the solver even when nothing moves, and the rest pose can crush a muscle.")
     INPUTS = (Port("Particles", "vtkMultiBlockDataSet",
                    "particles per muscle (the Fibre Resampler's output)"),
               Port("Surfaces", "vtkMultiBlockDataSet",
                    "muscles.vtm: the rest muscle surfaces, blocks named as the particles' blocks"),
               Port("Bones", "vtkMultiBlockDataSet",
-                   "bones.vtm: the rest bone surfaces (optional); muscle spheres are then kept "
-                   "clear of the bone spheres in the rest pose", optional=True))
+                   "bones.vtm: the rest bone surfaces (optional, but connect it); muscle spheres "
+                   "are then kept clear of the bone spheres in the rest pose. Without it a "
+                   "warning: spheres overlapping a bone at rest are pushed out by the solver "
+                   "and the rest pose can crush a muscle", optional=True))
     OUTPUTS = (Port("Model", "vtkMultiBlockDataSet",
                     "the mass-spring model per muscle: particles and springs"),)
     PROPERTIES = (
@@ -143,7 +154,9 @@ class SpringBuilder(MuscleFilter):
         radii = shrink_radii(np.concatenate([m["rest"] for m in models]),
                              np.concatenate([m["radius"] for m in models]),
                              np.repeat(np.arange(len(models)), sizes))
-        if inputs[2] is not None:
+        if inputs[2] is None:
+            vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {NO_BONES_WARNING}\n")
+        else:
             bone_centres, bone_radii, _ = bone_sphere_set(inputs[2], where=BONES_FILE)
             radii = clear_of_obstacles(np.concatenate([m["rest"] for m in models]), radii,
                                        bone_centres, bone_radii)

@@ -18,6 +18,9 @@ from .base import MuscleFilter, Port
 
 MEAN_ROW = "mean"
 """Name (``muscle`` column) of the table's last row."""
+IN_BONE_COLUMNS = (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
+                   A.NEW_IN_BONE_DEPTH_AFTER_MM)
+"""Columns copied from the deformed surfaces' field data (MVC Surface Deformer with bones)."""
 
 
 class VolumeErrorProbe(MuscleFilter):
@@ -29,7 +32,9 @@ class VolumeErrorProbe(MuscleFilter):
             "(100 |V - V_rest| / V_rest) on each surface, and a table with one row per muscle "
             "and a last row 'mean' holding the mean of the muscles' rest volumes, volumes and "
             "errors (the mean error, not the error of the mean volume). The paper reached "
-            "2.71 % and accepts up to 6 %.")
+            "2.71 % and accepts up to 6 %. The table also carries, from the MVC Surface "
+            "Deformer's field data, the surface vertices newly inside a bone and their deepest "
+            "depth (mm) before and after its push out (NaN when it had no bones connected).")
     INPUTS = (
         Port("DeformedSurfaces", "vtkMultiBlockDataSet",
              "the deformed muscle surfaces (MVC Surface Deformer), closed triangle meshes"),
@@ -41,8 +46,10 @@ class VolumeErrorProbe(MuscleFilter):
              "the deformed surfaces with field data rest_volume, volume (mm^3), "
              "volume_error_pct"),
         Port("VolumeTable", "vtkTable",
-             "columns muscle, rest_volume, volume (mm^3), volume_error_pct; one row per "
-             "muscle, then a row 'mean' of the means of each column"),
+             "columns muscle, rest_volume, volume (mm^3), volume_error_pct, "
+             "new_in_bone_vertices, new_in_bone_depth_mm, new_in_bone_vertices_after_push, "
+             "new_in_bone_depth_after_push_mm; one row per muscle, then a row 'mean' of the "
+             "means of each column"),
     )
     PROPERTIES = ()
 
@@ -53,6 +60,7 @@ class VolumeErrorProbe(MuscleFilter):
             raise MuscleMSSError("DeformedSurfaces: has no muscle blocks; connect the MVC "
                                  "Surface Deformer's DeformedSurfaces output")
         names, rest_volumes, volumes, errors, surfaces = [], [], [], [], []
+        in_bone = {key: [] for key in IN_BONE_COLUMNS}
         for i, (name, block) in enumerate(deformed_blocks):
             if name not in rest_blocks:
                 raise MuscleMSSError(f"RestSurfaces: has no block '{name}'; every deformed "
@@ -68,6 +76,8 @@ class VolumeErrorProbe(MuscleFilter):
             rest_volumes.append(rest_volume)
             volumes.append(volume)
             errors.append(error_pct)
+            for key, values in in_bone.items():
+                values.append(float(V.field(block, key, default=np.nan)))
             surfaces.append((name, out))
             self.progress((i + 1) / len(deformed_blocks))
         V.fill_multiblock(outputs[0], surfaces)
@@ -76,6 +86,7 @@ class VolumeErrorProbe(MuscleFilter):
             A.REST_VOLUME: np.append(rest_volumes, np.mean(rest_volumes)),
             A.VOLUME: np.append(volumes, np.mean(volumes)),
             A.VOLUME_ERROR_PCT: np.append(errors, np.mean(errors)),
+            **{key: np.append(values, np.mean(values)) for key, values in in_bone.items()},
         })
 
 

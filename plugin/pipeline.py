@@ -60,7 +60,8 @@ def build_pipeline(scene_folder, show=True, settings=None):
     solver = p["MSS Collision Solver"]
     p["MVC Surface Deformer"] = simple.MVCSurfaceDeformer(
         registrationName="MVC Surface Deformer", SolvedModel=simple.OutputPort(solver, 0),
-        RestSurfaces=p["muscles"], RestModel=p["Spring Builder"])
+        RestSurfaces=p["muscles"], RestModel=p["Spring Builder"], RestBones=p["bones"],
+        PosedBones=simple.OutputPort(pose, 1))
     p["Volume-Error Probe"] = simple.VolumeErrorProbe(
         registrationName="Volume-Error Probe",
         DeformedSurfaces=simple.OutputPort(p["MVC Surface Deformer"], 0),

@@ -240,7 +240,9 @@ def test_volumes_agree_with_vtk_mass_properties_and_the_table():
     f = deform(moved(model, lambda p: p + rng.normal(scale=0.4, size=p.shape)), surfaces, model)
     p = probe(f.GetOutputDataObject(0), surfaces)
     table = V.table_columns(p.GetOutputDataObject(1))
-    assert list(table) == [A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT]
+    assert list(table) == [A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
+                           A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM,
+                           A.NEW_IN_BONE_VERTICES_AFTER, A.NEW_IN_BONE_DEPTH_AFTER_MM]
     assert table[A.MUSCLE] == ["vastus", "gracilis", "mean"]
     rest = dict(V.blocks(surfaces))
     for row, (name, out) in enumerate(V.blocks(p.GetOutputDataObject(0))):

@@ -388,3 +388,25 @@ def test_with_bones_no_muscle_sphere_overlaps_a_bone_sphere_at_rest(small_scene)
     for (_, a), (_, b) in zip(V.blocks(alone), V.blocks(cleared)):
         ra, rb = V.point_array(a, A.RADIUS), V.point_array(b, A.RADIUS)
         assert (rb <= ra).all() and (rb > 0).sum() > 0.7 * (ra > 0).sum()
+
+
+def test_without_bones_the_spring_builder_warns_of_the_consequence():
+    from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
+    _, fibres, surfaces = scene()
+    particles = resample(fibres)
+    bone = spindle([0.0, 40.0, 0.0])[1]
+    bones = V.make_multiblock([("femur", V.make_polydata(bone.points, triangles=bone.triangles))])
+    previous = vtkOutputWindow.GetInstance()
+    texts = []
+    try:
+        for connected in (None, bones):
+            window = vtkStringOutputWindow()
+            vtkOutputWindow.SetInstance(window)
+            build(particles, surfaces, connected)
+            texts.append(window.GetOutput())
+    finally:
+        vtkOutputWindow.SetInstance(previous)
+    alone, wired = texts
+    assert "Spring Builder: the Bones input is not connected" in alone
+    assert "the rest pose can crush a muscle" in alone and "Connect bones.vtm" in alone
+    assert "Bones input" not in wired
