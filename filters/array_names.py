@@ -38,3 +38,6 @@ VOLUME = "volume"                    # float64, mm^3
 VOLUME_ERROR_PCT = "volume_error_pct"  # float64, %
 PROJECTION_PASSES = "projection_passes"  # float64, collision passes after the last iteration
 REMAINING_PENETRATION = "remaining_penetration"  # float64, mm, deepest overlap they left
+CONVERGED = "converged"              # float64 1/0, the solve reached its tolerance (solver)
+METHOD = "method"                    # string, the solver method that produced the table
+RESIDUAL = "residual"                # column of the solver's table: mm, largest move of a step
