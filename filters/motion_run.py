@@ -8,8 +8,10 @@ Shared by ``muscle-mss demo`` / ``muscle-mss run`` and the pvpython/pvbatch entr
 * ``summary.csv``: one row per (time, muscle) with the columns of :data:`SUMMARY_COLUMNS`;
 * ``convergence/convergence_<k>.csv``: the solver's per-iteration table of each time point.
 
-Each time point starts from the rest pose (paper §3.1), so time points are independent and can
-be spread over MPI ranks (:func:`run_motion` takes a rank and the number of ranks).
+Time points are solved in time order, so that the quasi-static solver (the default method)
+warm starts each from the one before it (the MSS Collision Solver keeps its last solution);
+:func:`run_motion` gives MPI rank k of K a contiguous block of time points, each rank warm
+starting within its own block.
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ from .scene_io import scene_readers
 
 SUMMARY_COLUMNS = ("time", "muscle", "rest_volume", "volume", "volume_error_pct",
                    "mean_fibre_strain", "max_fibre_strain", "max_penetration_mm",
-                   "iterations", "seconds")
+                   "iterations", "converged", "seconds")
 SERIES = ("surfaces", "fibres", "particles")
 
 
@@ -126,7 +128,9 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     table = V.table_columns(update_at(p.probe, 1, t))
     fibres = _copy(update_at(p.deformer, 1, t))
     particles = _copy(update_at(p.solver, 0, t))
-    convergence = V.table_columns(update_at(p.solver, 1, t))
+    convergence_table = update_at(p.solver, 1, t)
+    convergence = V.table_columns(convergence_table)
+    converged = int(V.field(convergence_table, A.CONVERGED, 0))
     bones = update_at(p.pose, 1, t)
     seconds = wallclock.perf_counter() - start
 
@@ -159,7 +163,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             "volume_error_pct": float(table[A.VOLUME_ERROR_PCT][r]),
             "mean_fibre_strain": fibre_stats[name][0], "max_fibre_strain": fibre_stats[name][1],
             "max_penetration_mm": float(penetration[k]),
-            "iterations": iterations, "seconds": seconds,
+            "iterations": iterations, "converged": converged, "seconds": seconds,
         })
     return TimePointResult(index, t, rows, surfaces, fibres, particles, convergence, seconds)
 
@@ -221,10 +225,19 @@ def write_summary(out: str, rows) -> str:
     return path
 
 
+def time_block(count: int, k: int, parts: int) -> range:
+    """The k-th of ``parts`` contiguous blocks of ``count`` time points (sizes differ by at
+    most one, the first blocks the larger): a rank warm starts within its own block."""
+    size, extra = divmod(count, parts)
+    first = k * size + min(k, extra)
+    return range(first, first + size + (1 if k < extra else 0))
+
+
 def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None):
     """Compute the time points of a scene's motion and write their files.
 
-    ``part = (k, K)`` computes time points k, k+K, k+2K, … (MPI rank k of K); default all.
+    ``part = (k, K)`` computes the k-th of K contiguous blocks of time points (MPI rank k of
+    K), in time order; default all.
 
     ``on_step(result, done, total)`` is called after each time point (progress bars). Returns the
     summary rows in time-point order; the caller writes ``summary.csv`` and the ``.pvd`` index
@@ -233,7 +246,7 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None):
     pipeline = build_pipeline(scene_folder, settings)
     if not pipeline.times:
         raise RuntimeError(f"{os.path.join(scene_folder, MOTION_FILE)} gave no time steps")
-    indices = range(part[0], len(pipeline.times), part[1])
+    indices = time_block(len(pipeline.times), *part)
     os.makedirs(out, exist_ok=True)
     rows = []
     for done, index in enumerate(indices, start=1):

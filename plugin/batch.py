@@ -1,12 +1,14 @@
 """Run a whole motion in ParaView's Python, serially or spread over MPI ranks (DESIGN §7).
 
     pvpython -m muscle_mss.plugin.batch SCENE OUT [--resolution N] [--layout L] [--iterations K]
+        [--method quasi-static|paper] [--tolerance MM]
     mpiexec -n K pvbatch --sym -m muscle_mss.plugin.batch SCENE OUT [...]
 
 (with ``plugin/shim`` on PYTHONPATH for Debian's ParaView 5.11, see the README). Writes the
 ``.pvd`` series of deformed surfaces, fibres and particles and ``OUT/summary.csv``
-(``muscle_mss.filters.motion_run``). Under MPI rank r computes time points r, r+K, r+2K, …;
-every time point starts from the rest pose, so the results equal the serial run's.
+(``muscle_mss.filters.motion_run``). Under MPI rank r of K computes the r-th of K contiguous
+blocks of time points in time order, warm starting each from the one before it within its block
+(the quasi-static solver; its results agree with the serial run's within the tolerance).
 """
 import argparse
 import csv
@@ -23,6 +25,12 @@ def parse_args(argv):
     parser.add_argument("--resolution", type=int, help="particles per fibre N")
     parser.add_argument("--layout", help="spring layout: lattice-6, lattice-26, Delaunay, k-NN")
     parser.add_argument("--iterations", type=int, help="solver iterations per time point")
+    # not cli.add_method_options: importing the package loads numba before NUMBA_NUM_THREADS
+    parser.add_argument("--method", choices=("quasi-static", "paper"),
+                        help="solver: quasi-static equilibrium (default) or the paper's "
+                             "relaxation")
+    parser.add_argument("--tolerance", type=float,
+                        help="quasi-static tolerance: largest particle move of a step, mm")
     return parser.parse_args(argv)
 
 
