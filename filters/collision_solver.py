@@ -141,7 +141,8 @@ class MSSCollisionSolver(MuscleFilter):
                  choices=METHODS, group="Method"),
         Property("Tolerance", "double", Q.DEFAULT_TOLERANCE,
                  "Quasi-static: the solve has converged when no particle moves more than this "
-                 "(mm) in one step and no two objects overlap by more than "
+                 "(mm) in one step, nor (estimated from how fast the steps shrink) in all the "
+                 "steps still to come, and no two objects overlap by more than "
                  "PenetrationTolerance. Iterations caps the steps; with Termination 'time "
                  "budget' so does TimeBudget. An unconverged solve prints a warning.",
                  minimum=0.0, group="Method"),
