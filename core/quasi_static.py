@@ -65,10 +65,12 @@ DEFAULT_HISTORY = 5             # Anderson acceleration depth
 # every sphere's row of A stiffer, which slows the free boundary particles down.
 DEFAULT_CONTACT_WEIGHT = 1.0
 METHOD = "quasi-static"
+# Anderson history restarts when more than this fraction of the colliding spheres changed
+# (0: any change). On the full demo 0.05, or never restarting, left the residual stalled just
+# the same (the contact chatter, see the README), so the safe choice stays.
 RESTART_FRACTION = 0.0
 RATE_WINDOW = 5
 REST_STEP = 1e-12        # mm
-SAFEGUARD = True
 
 
 @dataclass
@@ -342,7 +344,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             raise MuscleMSSError(f"the quasi-static solve diverged at iteration {done + 1}: a "
                                  "particle's step is not finite; check stiffness and bulk "
                                  "modulus")
-        if SAFEGUARD and fallback is not None and largest > previous_move:
+        if fallback is not None and largest > previous_move:
             # the accelerated point made things worse: take the plain step instead
             x[:, free] = fallback
             history_x.clear()
