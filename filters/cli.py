@@ -167,7 +167,8 @@ def _add_run_options(p):
 def add_method_options(p):
     """``--method`` and ``--tolerance`` (shared with the pvpython/pvbatch batch)."""
     p.add_argument("--method", choices=("quasi-static", "paper"),
-                   help="solver: quasi-static equilibrium (default) or the paper's relaxation")
+                   help="solver: the paper's relaxation (default) or the quasi-static "
+                        "equilibrium")
     p.add_argument("--tolerance", type=float,
                    help="quasi-static tolerance: largest particle move of a step, mm "
                         "(default 0.001)")

@@ -8,7 +8,7 @@ Shared by ``muscle-mss demo`` / ``muscle-mss run`` and the pvpython/pvbatch entr
 * ``summary.csv``: one row per (time, muscle) with the columns of :data:`SUMMARY_COLUMNS`;
 * ``convergence/convergence_<k>.csv``: the solver's per-iteration table of each time point.
 
-Time points are solved in time order, so that the quasi-static solver (the default method)
+Time points are solved in time order, so that the quasi-static method (``Method``)
 warm starts each from the one before it (the MSS Collision Solver keeps its last solution);
 :func:`run_motion` gives MPI rank k of K a contiguous block of time points, each rank warm
 starting within its own block.

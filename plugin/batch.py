@@ -8,7 +8,8 @@
 ``.pvd`` series of deformed surfaces, fibres and particles and ``OUT/summary.csv``
 (``muscle_mss.filters.motion_run``). Under MPI rank r of K computes the r-th of K contiguous
 blocks of time points in time order, warm starting each from the one before it within its block
-(the quasi-static solver; its results agree with the serial run's within the tolerance).
+(the quasi-static method; with the paper's, the default, every time point starts from its posed
+state and the ranks give the serial run's results).
 """
 import argparse
 import csv
@@ -27,8 +28,8 @@ def parse_args(argv):
     parser.add_argument("--iterations", type=int, help="solver iterations per time point")
     # not cli.add_method_options: importing the package loads numba before NUMBA_NUM_THREADS
     parser.add_argument("--method", choices=("quasi-static", "paper"),
-                        help="solver: quasi-static equilibrium (default) or the paper's "
-                             "relaxation")
+                        help="solver: the paper's relaxation (default) or the quasi-static "
+                             "equilibrium")
     parser.add_argument("--tolerance", type=float,
                         help="quasi-static tolerance: largest particle move of a step, mm")
     return parser.parse_args(argv)
