@@ -178,6 +178,7 @@ class PreparedModel:
     muscle: np.ndarray
     fixed: np.ndarray
     boundary: np.ndarray
+    cache: dict = field(default_factory=dict)   # other methods' topology data (factorisations)
 
 
 def prepare(model: MSSModel) -> PreparedModel:

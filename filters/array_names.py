@@ -47,3 +47,6 @@ NEW_IN_BONE_VERTICES_AFTER = "new_in_bone_vertices_after_push"  # the same after
 NEW_IN_BONE_DEPTH_AFTER_MM = "new_in_bone_depth_after_push_mm"  # (NaN: no bones connected)
 PROJECTION_PASSES = "projection_passes"  # float64, collision passes after the last iteration
 REMAINING_PENETRATION = "remaining_penetration"  # float64, mm, deepest overlap they left
+CONVERGED = "converged"              # float64 1/0, the solve reached its tolerance (solver)
+METHOD = "method"                    # string, the solver method that produced the table
+RESIDUAL = "residual"                # column of the solver's table: mm, largest move of a step

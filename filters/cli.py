@@ -171,8 +171,11 @@ def cmd_run(args) -> int:
 
 def settings_from(args) -> dict:
     """Filter property settings from the options that were given."""
+    method = {"paper": "paper relaxation"}.get(getattr(args, "method", None),
+                                               getattr(args, "method", None))
     pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
-             ("Iterations", args.iterations))
+             ("Iterations", args.iterations), ("Method", method),
+             ("Tolerance", getattr(args, "tolerance", None)))
     return {name: value for name, value in pairs if value is not None}
 
 
@@ -181,6 +184,17 @@ def _add_run_options(p):
     p.add_argument("--layout", choices=("lattice-6", "lattice-26", "Delaunay", "k-NN"),
                    help="spring layout (default lattice-26)")
     p.add_argument("--iterations", type=int, help="solver iterations per time point (default 500)")
+    add_method_options(p)
+
+
+def add_method_options(p):
+    """``--method`` and ``--tolerance`` (shared with the pvpython/pvbatch batch)."""
+    p.add_argument("--method", choices=("quasi-static", "paper"),
+                   help="solver: the paper's relaxation (default) or the quasi-static "
+                        "equilibrium")
+    p.add_argument("--tolerance", type=float,
+                   help="quasi-static tolerance: largest particle move of a step, mm "
+                        "(default 0.001)")
 
 
 def build_parser() -> argparse.ArgumentParser:

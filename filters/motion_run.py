@@ -8,8 +8,10 @@ Shared by ``muscle-mss demo`` / ``muscle-mss run`` and the pvpython/pvbatch entr
 * ``summary.csv``: one row per (time, muscle) with the columns of :data:`SUMMARY_COLUMNS`;
 * ``convergence/convergence_<k>.csv``: the solver's per-iteration table of each time point.
 
-Each time point starts from the rest pose (paper §3.1), so time points are independent and can
-be spread over MPI ranks (:func:`run_motion` takes a rank and the number of ranks).
+Time points are solved in time order, so that the quasi-static method (``Method``)
+warm starts each from the one before it (the MSS Collision Solver keeps its last solution);
+:func:`run_motion` gives MPI rank k of K a contiguous block of time points, each rank warm
+starting within its own block.
 """
 from __future__ import annotations
 
@@ -38,7 +40,7 @@ SUMMARY_COLUMNS = ("time", "muscle", "rest_volume", "volume", "volume_error_pct"
                    A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
                    A.NEW_IN_BONE_DEPTH_AFTER_MM, "free_particles_in_bone",
                    "free_particle_bone_depth_mm", "free_particles_new_in_bone",
-                   "free_particle_new_in_bone_depth_mm", "iterations", "seconds")
+                   "free_particle_new_in_bone_depth_mm", "iterations", "converged", "seconds")
 """``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
 other objects (:mod:`muscle_mss.core.penetration`); ``new_in_bone_*``: deformed surface vertices
 inside a bone they were outside at rest, before and after the MVC Surface Deformer pushes them
@@ -145,7 +147,9 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     table = V.table_columns(update_at(p.probe, 1, t))
     fibres = _copy(update_at(p.deformer, 1, t))
     particles = _copy(update_at(p.solver, 0, t))
-    convergence = V.table_columns(update_at(p.solver, 1, t))
+    convergence_table = update_at(p.solver, 1, t)
+    convergence = V.table_columns(convergence_table)
+    converged = int(V.field(convergence_table, A.CONVERGED, 0))
     bones = update_at(p.pose, 1, t)
     seconds = wallclock.perf_counter() - start
 
@@ -184,7 +188,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             "free_particle_bone_depth_mm": in_bone[name][1],
             "free_particles_new_in_bone": in_bone[name][2],
             "free_particle_new_in_bone_depth_mm": in_bone[name][3],
-            "iterations": iterations, "seconds": seconds,
+            "iterations": iterations, "converged": converged, "seconds": seconds,
         })
     return TimePointResult(index, t, rows, surfaces, fibres, particles, convergence, seconds)
 
@@ -370,10 +374,19 @@ def write_summary(out: str, rows) -> str:
     return path
 
 
+def time_block(count: int, k: int, parts: int) -> range:
+    """The k-th of ``parts`` contiguous blocks of ``count`` time points (sizes differ by at
+    most one, the first blocks the larger): a rank warm starts within its own block."""
+    size, extra = divmod(count, parts)
+    first = k * size + min(k, extra)
+    return range(first, first + size + (1 if k < extra else 0))
+
+
 def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None):
     """Compute the time points of a scene's motion and write their files.
 
-    ``part = (k, K)`` computes time points k, k+K, k+2K, … (MPI rank k of K); default all.
+    ``part = (k, K)`` computes the k-th of K contiguous blocks of time points (MPI rank k of
+    K), in time order; default all.
 
     ``on_step(result, done, total)`` is called after each time point (progress bars). Returns the
     summary rows in time-point order; the caller writes ``summary.csv`` and the ``.pvd`` index
@@ -382,7 +395,7 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None):
     pipeline = build_pipeline(scene_folder, settings)
     if not pipeline.times:
         raise RuntimeError(f"{os.path.join(scene_folder, MOTION_FILE)} gave no time steps")
-    indices = range(part[0], len(pipeline.times), part[1])
+    indices = time_block(len(pipeline.times), *part)
     os.makedirs(out, exist_ok=True)
     rows = []
     for done, index in enumerate(indices, start=1):

@@ -134,7 +134,8 @@ def _polylines(pyvista, points, offsets):
 
 def convergence_picture(convergence_csv, path, title="") -> str:
     """Plot a solver convergence table (``convergence/convergence_<k>.csv``): mean displacement
-    per iteration of each muscle, log scale (the paper's figures 5 and 6). Returns ``path``."""
+    per iteration of each muscle, log scale (the paper's figures 5 and 6), and the quasi-static
+    solver's residual where the table has one. Returns ``path``."""
     import csv
 
     import matplotlib
@@ -150,6 +151,10 @@ def convergence_picture(convergence_csv, path, title="") -> str:
         axes.plot(iterations, [max(float(r[column]), 1e-12) for r in rows],
                   color=MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)], lw=1.2,
                   label=column[len(prefix):].replace("_", " "))
+    if "residual" in rows[0]:
+        # the quasi-static solver's largest particle move of a step: what its Tolerance bounds
+        axes.plot(iterations, [max(float(r["residual"]), 1e-12) for r in rows], color="black",
+                  lw=1.6, ls="--", label="residual (largest move)")
     axes.set_yscale("log")
     axes.set_xlabel("iteration")
     axes.set_ylabel("mean displacement per iteration (mm)")

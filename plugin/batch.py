@@ -1,12 +1,15 @@
 """Run a whole motion in ParaView's Python, serially or spread over MPI ranks (DESIGN §7).
 
     pvpython -m muscle_mss.plugin.batch SCENE OUT [--resolution N] [--layout L] [--iterations K]
+        [--method quasi-static|paper] [--tolerance MM]
     mpiexec -n K pvbatch --sym -m muscle_mss.plugin.batch SCENE OUT [...]
 
 (with ``plugin/shim`` on PYTHONPATH for Debian's ParaView 5.11, see the README). Writes the
 ``.pvd`` series of deformed surfaces, fibres and particles and ``OUT/summary.csv``
-(``muscle_mss.filters.motion_run``). Under MPI rank r computes time points r, r+K, r+2K, …;
-every time point starts from the rest pose, so the results equal the serial run's.
+(``muscle_mss.filters.motion_run``). Under MPI rank r of K computes the r-th of K contiguous
+blocks of time points in time order, warm starting each from the one before it within its block
+(the quasi-static method; with the paper's, the default, every time point starts from its posed
+state and the ranks give the serial run's results).
 """
 import argparse
 import csv
@@ -25,6 +28,12 @@ def parse_args(argv):
     parser.add_argument("--iterations", type=int, help="solver iterations per time point")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in OUT (refused without it)")
+    # not cli.add_method_options: importing the package loads numba before NUMBA_NUM_THREADS
+    parser.add_argument("--method", choices=("quasi-static", "paper"),
+                        help="solver: the paper's relaxation (default) or the quasi-static "
+                             "equilibrium")
+    parser.add_argument("--tolerance", type=float,
+                        help="quasi-static tolerance: largest particle move of a step, mm")
     return parser.parse_args(argv)
 
 

@@ -48,7 +48,7 @@ def test_demo_summary_has_a_row_per_time_and_muscle(demo_run, small_scene):
     for r in rows:
         values = {k: float(r[k]) for k in SUMMARY_COLUMNS if k != "muscle"}
         assert all(np.isfinite(v) for v in values.values()), r
-        assert values["iterations"] == 60
+        assert values["iterations"] == 60 and values["converged"] == 0
         assert values["rest_volume"] > 0 and values["volume"] > 0
         assert values["volume_error_pct"] == pytest.approx(
             100 * abs(values["volume"] - values["rest_volume"]) / values["rest_volume"])
@@ -61,6 +61,18 @@ def test_run_one_time_point(small_scene_dir, tmp_path, capsys):
         rows = list(csv.DictReader(f))
     assert {float(r["time"]) for r in rows} == {0.5}
     assert "mean over muscles" in capsys.readouterr().out
+
+
+def test_run_quasi_static_method_records_its_residual(small_scene_dir, tmp_path):
+    assert main(["run", str(small_scene_dir), str(tmp_path), "--time", "0.5",
+                 "--iterations", "12", "--method", "quasi-static", "--tolerance", "0.01"]) == 0
+    with open(tmp_path / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert all(1 <= int(r["iterations"]) <= 12 for r in rows)
+    assert {int(r["converged"]) for r in rows} <= {0, 1}
+    with open(tmp_path / "convergence" / "convergence_0010.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == int(rows[0]["iterations"]) and float(table[0]["residual"]) > 0
 
 
 def test_run_refuses_a_broken_scene_with_a_clear_error(tmp_path, capsys):

@@ -48,6 +48,9 @@ def flexed(small_scene):
 
 
 def solve(model, bones, **properties):
+    """Solve with the paper relaxation unless ``Method`` is given (these are its tests; the
+    quasi-static method's are in test_quasi_static.py)."""
+    properties.setdefault("Method", "paper relaxation")   # the default, pinned
     solver = MSSCollisionSolver()
     solver.SetInputDataObject(0, model)
     solver.SetInputDataObject(1, bones)
