@@ -1,7 +1,7 @@
 """How deep the collision spheres of each object still overlap others after a solve.
 
-A check of the result (summary.csv's ``sphere_overlap_mm`` per muscle, DESIGN §7's
-``sphere_overlap_mm``), run once per time point, not in the solver's loop: the paper's §3.3
+A check of the result (summary.csv's ``sphere_overlap_mm`` per muscle),
+run once per time point, not in the solver's loop: the paper's §3.3
 response aims at spheres of different objects that just touch, so the remaining overlap
 measures how far a solve is from that. It measures spheres, not the surface the user sees:
 surface vertices in bones are reported by the MVC Surface Deformer.

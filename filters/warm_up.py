@@ -25,6 +25,7 @@ VARIANTS = (
     {"Iterations": 3},
     {"Iterations": 3, "CollisionStructure": "octree BVH", "Blending": "linear",
      "Termination": "displacement threshold"},
+    {"Iterations": 3, "Method": "quasi-static"},
 )
 """Filter settings whose tiny solves together call every kernel with the argument types of a
 real run (property values select kernels, not argument types)."""
