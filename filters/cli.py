@@ -197,8 +197,13 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except MuscleMSSError as err:
-        print(f"error: {err}", file=sys.stderr)
+        label = getattr(err, "filter_label", None)
+        print(f"error: {label + ': ' if label else ''}{err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as err:
+        print(f"\ninterrupted: {err or 'by the user (Ctrl-C)'}; the output folder may hold "
+              "part of the results", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
