@@ -75,6 +75,84 @@ def flatten_fibres(axes):
     return mutate
 
 
+def remove_file(relative):
+    def mutate(folder):
+        os.remove(folder / relative)
+    return mutate
+
+
+def cut_file(relative, keep):
+    def mutate(folder):
+        path = folder / relative
+        path.write_bytes(path.read_bytes()[:keep])
+    return mutate
+
+
+def swap_files(a, b):
+    def mutate(folder):
+        first, second = (folder / a).read_bytes(), (folder / b).read_bytes()
+        (folder / a).write_bytes(second)
+        (folder / b).write_bytes(first)
+    return mutate
+
+
+def csv_cell(row, column, value=""):
+    """Set ``motion.csv`` data row ``row`` (1 = first) in ``column`` to ``value``; None drops
+    that cell and every cell after it."""
+    def mutate(folder):
+        lines = (folder / "motion.csv").read_text().splitlines()
+        header = lines[0].split(",")
+        cells = lines[row].split(",")
+        c = header.index(column)
+        lines[row] = ",".join(cells[:c] if value is None else cells[:c] + [value] + cells[c + 1:])
+        (folder / "motion.csv").write_text("\n".join(lines) + "\n")
+    return mutate
+
+
+def extra_bone_rows(folder):
+    """Rows for a bone 'patella' that bones.vtm lacks, appended at the end of motion.csv."""
+    lines = (folder / "motion.csv").read_text().splitlines()
+    extra = [line.replace(",tibia,", ",patella,") for line in lines[1:] if ",tibia," in line]
+    (folder / "motion.csv").write_text("\n".join(lines + extra) + "\n")
+
+
+def almost_rigid(scene):
+    """One transform scaled by 1 + 4e-6: R^T R within the tolerance, det 1 + 1.2e-5 beyond it."""
+    scene.motion.matrices[3, 1, :, :3] *= 1.0 + 4e-6
+
+
+def transform_scene(scale=1.0, offset=0.0):
+    """Every length times ``scale``, then shifted by ``offset`` mm (motion kept consistent:
+    the bones move about the same shifted points)."""
+    def mutate(scene):
+        shift = np.full(3, offset)
+        for surface in list(scene.muscles.values()) + list(scene.bones.values()):
+            surface.points[:] = surface.points * scale + shift
+        for fibres in scene.fibres.values():
+            fibres.points[:] = fibres.points * scale + shift
+        m = scene.motion.matrices
+        m[..., 3] = m[..., 3] * scale + shift - np.einsum("tbij,j->tbi", m[..., :3], shift)
+    return mutate
+
+
+def move_fibres(dx):
+    def mutate(scene):
+        scene.fibres[_first(scene.fibres)].points[:, 0] += dx
+    return mutate
+
+
+def muscle_into_bone(scene):
+    """The first muscle (surface and fibres) shrunk to a fifth about its centre and moved to
+    the middle of the femur's shaft."""
+    name = _first(scene.muscles)
+    surface, fibres = scene.muscles[name], scene.fibres[name]
+    femur = scene.bones["femur"].points
+    target = 0.5 * (femur.min(axis=0) + femur.max(axis=0))
+    centre = surface.points.mean(axis=0)
+    surface.points[:] = (surface.points - centre) * 0.2 + target
+    fibres.points[:] = (fibres.points - centre) * 0.2 + target
+
+
 # ---- the cases ----------------------------------------------------------------------------
 
 CASES = [
@@ -124,6 +202,69 @@ CASES = [
          r"bone spheres 0.001 mm apart \(\d+ candidate points, a grid of .* cells\) would need "
          r".* GiB, more than the .* GiB .*raise the MSS Collision Solver's BoneSphereSpacing",
          cli=False, settings={"BoneSphereSpacing": 1e-3}),
+    # scene files (issue 16 item 2, issue 13 item 4)
+    Case("muscle-vtp-missing", "`muscles/muscles_1.vtp` deleted (muscles.vtm still names it)",
+         r"muscles.vtm block 'vastus_lateralis': its file .*muscles_1.vtp is missing",
+         files=remove_file("muscles/muscles_1.vtp")),
+    Case("bone-vtp-cut-header", "`bones/bones_1.vtp` cut inside its XML header (first 120 bytes)",
+         r"bones.vtm block 'femur': its file .*bones_1.vtp could not be read as VTK polydata",
+         files=cut_file("bones/bones_1.vtp", 120)),
+    Case("fibre-vtp-cut", "`fibres/fibres_2.vtp` cut in the middle of its data",
+         r"fibres.vtm block 'vastus_intermedius': its file .*fibres_2.vtp could not be read",
+         files=cut_file("fibres/fibres_2.vtp", 3000)),
+    Case("muscles-vtm-cut", "`muscles.vtm` cut inside its XML",
+         r"muscles.vtm: is not a readable VTK multiblock file",
+         files=cut_file("muscles.vtm", 200)),
+    Case("fibre-files-swapped", "`fibres_0.vtp` and `fibres_3.vtp` swapped (names kept)",
+         r"fibres.vtm block 'rectus_femoris': \d+ % of its fibres' midpoints lie inside "
+         r"muscles.vtm block 'rectus_femoris'; a muscle's fibres must run inside its surface",
+         files=swap_files("fibres/fibres_0.vtp", "fibres/fibres_3.vtp")),
+    # motion.csv (issue 16 item 3, issue 13 item 5)
+    Case("csv-empty-translation", "one translation cell of `motion.csv` emptied",
+         r"motion.csv row 6 \(line 7\), column m13: the cell is empty",
+         files=csv_cell(6, "m13")),
+    Case("csv-empty-rotation", "one rotation cell of `motion.csv` emptied",
+         r"motion.csv row 6 \(line 7\), column m01: the cell is empty",
+         files=csv_cell(6, "m01")),
+    Case("csv-missing-cells", "a `motion.csv` row cut short (its last two cells missing)",
+         r"motion.csv row 4 \(line 5\), column m22: the cell is missing",
+         files=csv_cell(4, "m22", None)),
+    Case("csv-not-a-number", "a `motion.csv` cell holding `abc`",
+         r"motion.csv row 5, column m03: 'abc' is not a number",
+         files=csv_cell(5, "m03", "abc")),
+    Case("almost-rigid", "a transform scaled by 1 + 4e-6 (det 1 + 1.2e-5)",
+         r"motion.csv row \d+ \(bone 'femur', time 0.15\): the transform is not rigid: its 3x3 "
+         r"part scales volumes by det = 1.000012",
+         scene=almost_rigid),
+    Case("unknown-bone", "rows for a bone `patella` that bones.vtm lacks, appended to motion.csv",
+         r"motion.csv row 64: bone 'patella' is not a bone of the scene \(bones: pelvis, femur, "
+         r"tibia\)",
+         files=extra_bone_rows),
+    # implausible scenes (issue 16 item 5, issue 13 item 5)
+    Case("scene-in-metres", "the whole scene in metres (every length / 1000)",
+         r"muscles.vtm block 'rectus_femoris': the muscle is 0.\d+ mm across; .*is the scene "
+         r"in metres\? scale it by 1000",
+         scene=transform_scene(scale=1e-3)),
+    Case("scene-offset-1e12", "the whole scene moved by 1e12 mm",
+         r"muscles.vtm block 'rectus_femoris': a vertex lies 1e\+12 mm from the origin; a scene "
+         r"farther than 10000 mm \(10 m\)",
+         scene=transform_scene(offset=1e12)),
+    Case("muscle-inside-bone", "a muscle shrunk to a fifth and placed inside the femur",
+         r"muscles.vtm block 'rectus_femoris': \d+ % of its surface lies inside bones.vtm block "
+         r"'femur' at rest; a muscle must lie outside the bones",
+         scene=muscle_into_bone),
+    Case("fibres-200mm-out", "a muscle's fibres moved 200 mm out of its surface",
+         r"fibres.vtm block 'rectus_femoris': 0 % of its fibres' midpoints lie inside",
+         scene=move_fibres(200.0)),
+    # --time (issue 16 item 6)
+    Case("time-after-end", "`--time 5` (the motion ends at 1 s)",
+         r"--time 5 is outside the motion's time range \[0, 1\] s", options=("--time", "5"),
+         chain=False),
+    Case("time-before-start", "`--time -3`",
+         r"--time -3 is outside the motion's time range \[0, 1\] s", options=("--time", "-3"),
+         chain=False),
+    Case("time-nan", "`--time nan`", r"--time nan: not a finite number",
+         options=("--time", "nan"), chain=False),
 ]
 
 
@@ -236,7 +377,8 @@ def main(out=sys.stdout) -> int:
             folder = make_scene(case, os.path.join(tmp, f"scene{k}"))
             cli = run_cli(case, folder, os.path.join(tmp, f"out{k}"))[1] if case.cli else None
             chain = run_chain(case, folder) if case.chain else None
-            rows.append((case, cli, chain))
+            rows.append((case, *(None if m is None else m.replace(str(folder), "SCENE")
+                                 for m in (cli, chain))))
     out.write(HEAD + table(rows) + "\n")
     return 0
 
