@@ -57,13 +57,13 @@ def motion_problems(times, bones, values, known_bones=None, source=MOTION_FILE):
             problems.append(f"{source} row {r + 1}: bone '{b}' is not a bone of the scene "
                             f"(bones: {', '.join(order)})")
     for r in np.flatnonzero(~np.isfinite(times)):
-        problems.append(f"{source} row {r + 1}, column time: not a finite number (an empty "
-                        "cell, NaN or inf); every time must be a number")
+        problems.append(f"{source} row {r + 1}: time is not a finite number (an empty cell, "
+                        "NaN or inf); every time must be a number")
     bad_rows, bad_cols = np.nonzero(~np.isfinite(values))
     for r, c in zip(bad_rows, bad_cols):
-        problems.append(f"{source} row {r + 1} (bone '{bones[r]}'), column "
-                        f"{MOTION_COLUMNS[2 + c]}: {MOTION_COLUMNS[2 + c]} is not a finite "
-                        "number (an empty cell, NaN or inf); every matrix entry must be a number")
+        problems.append(f"{source} row {r + 1} (bone '{bones[r]}'): {MOTION_COLUMNS[2 + c]} is "
+                        "not a finite number (an empty cell, NaN or inf); every matrix entry "
+                        "must be a number")
     finite_rows = np.isfinite(values).all(axis=1)
     for r in np.flatnonzero(finite_rows):
         why = rigid_problem(values[r].reshape(3, 4))
