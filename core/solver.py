@@ -251,11 +251,12 @@ def _respond_sphere(s, x, v, particle, disp):
 
 
 @njit(cache=True, parallel=True)
-def _step_and_gather(mss, spheres):
+def _step_and_gather(mss, spheres, box, escaped):
     """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step`), each muscle's
     sphere centres then gathered for the collision tests — one parallel region: every region
     costs a thread wake-up (~0.1 ms on a virtual machine), which is a large part of one
-    iteration at N = 80."""
+    iteration at N = 80. ``escaped[m]`` is set when a sphere centre of muscle ``m`` lies
+    outside ``box`` (2, 3) mm or is not finite (tested while the centres are gathered)."""
     (x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr, cage_triangles,
      rest_volume, offsets, runs_int, runs_param, lane_rest, run_ptr, scattered_int,
      scattered_param, scattered_ptr) = mss
@@ -265,8 +266,12 @@ def _step_and_gather(mss, spheres):
         muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus,
                     cage_ptr, cage_triangles, rest_volume, offsets, runs_int, runs_param,
                     lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+        inside = True
         for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
             _gather_sphere(s, x, particle, centres, disp, collided)
+            for axis in range(3):
+                inside &= (centres[axis, s] >= box[0, axis]) & (centres[axis, s] <= box[1, axis])
+        escaped[m] = not inside
 
 
 @njit(cache=True)
@@ -364,15 +369,11 @@ def _mean_step(x, x_prev, first, last):
 
 
 @njit(cache=True)
-def _escaped(centres, sphere_ptr, box):
-    """The first muscle with a sphere centre outside ``box`` (2, 3) mm or not finite, else -1.
-
-    Serial: a few comparisons per sphere cost less than waking the threads for them."""
-    for m in range(sphere_ptr.shape[0] - 1):
-        for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
-            for axis in range(3):
-                if not box[0, axis] <= centres[axis, s] <= box[1, axis]:
-                    return m
+def _first_set(flags):
+    """Index of the first nonzero entry of ``flags``, or -1."""
+    for m in range(flags.shape[0]):
+        if flags[m]:
+            return m
     return -1
 
 
@@ -385,15 +386,16 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
     particle, disp, collided, sphere_ptr = spheres[0], spheres[6], spheres[7], spheres[10]
     mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
     (use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit, box) = control
+    escaped = np.zeros(offsets.shape[0] - 1, dtype=np.bool_)
     status = RUNNING
     bad = -1
     rebuilds = 0
     it = first
     while it < last and status == RUNNING:
         t0 = now()
-        _step_and_gather(mss, spheres)
+        _step_and_gather(mss, spheres, box, escaped)
         t1 = now()
-        bad = _escaped(spheres[5], sphere_ptr, box)
+        bad = _first_set(escaped)
         if bad >= 0:
             # a sphere left the world box (or is not finite): stop before any collision
             # structure indexes its grid or tree with it
