@@ -600,11 +600,12 @@ def check_history_size(iterations, muscles: int) -> None:
     :data:`MAX_HISTORY_BYTES` (it is allocated before the solve starts)."""
     size = float(iterations) * (muscles + 4) * 8
     if size > MAX_HISTORY_BYTES:
+        most = int(MAX_HISTORY_BYTES // ((muscles + 4) * 8))
         raise MuscleMSSError(
             f"Iterations {int(iterations)} would need a {size / 1024 ** 3:.3g} GiB history "
             f"({muscles} muscles + 4 values per iteration); at most "
-            f"{MAX_HISTORY_BYTES / 1024 ** 3:.3g} GiB ({int(MAX_HISTORY_BYTES // ((muscles + 4) * 8))} "
-            "iterations) are allowed; lower Iterations (it caps every termination)")
+            f"{MAX_HISTORY_BYTES / 1024 ** 3:.3g} GiB ({most} iterations) are allowed; lower "
+            "Iterations (it caps every termination)")
 
 
 def _divergence_limits(positions, offsets, reach) -> np.ndarray:

@@ -59,9 +59,11 @@ def _winding_numbers(points, surface_points, triangles, out):
             la = np.sqrt(ax * ax + ay * ay + az * az)
             lb = np.sqrt(bx * bx + by * by + bz * bz)
             lc = np.sqrt(cx * cx + cy * cy + cz * cz)
-            numerator = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+            numerator = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
+                         + az * (bx * cy - by * cx))
             denominator = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
-                           + (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la)
+                           + (ax * cx + ay * cy + az * cz) * lb
+                           + (bx * cx + by * cy + bz * cz) * la)
             total += 2.0 * np.arctan2(numerator, denominator)
         out[q] = total / (4.0 * np.pi)
 

@@ -292,7 +292,6 @@ This table is generated: `.venv/bin/python tests/bad_input_cases.py > docs/bad-i
 
 def make_scene(case: Case, folder) -> Path:
     """Write the small demo scene with ``case``'s mutations into ``folder``."""
-    from muscle_mss.core.demo_scene import demo_scene
     from muscle_mss.filters.scene_io import write_scene
     scene = copy.deepcopy(_small())
     if case.scene is not None:

@@ -2,7 +2,6 @@
 chain, and never changes an input (issues 13 and 16). The cases are the table of
 ``tests/bad_input_cases.py`` (also ``docs/bad-input.md``); the tests after them pin what a
 table cannot: no signal, no follow-on complaints, wrapped exceptions, Ctrl-C."""
-import os
 import subprocess
 import sys
 from pathlib import Path
