@@ -282,6 +282,14 @@ Anything a filter raises that is not one of our errors reaches the caller the sa
 `MemoryError` as `ran out of memory (SIZE ASKED)`); Ctrl-C stops `muscle-mss run` with exit
 code 130 and `interrupted: Ctrl-C while FILTER ran`.
 
+The scene-file cases (missing or cut `.vtp`, empty `motion.csv` cells) are checked when a scene
+folder is read by muscle-mss: `muscle-mss validate/run`, the batch, and the plugin's pipeline
+builder (`muscle_mss.plugin.pipeline.build_pipeline`, which refuses the folder before building).
+A pipeline assembled by hand from ParaView's own readers gets only what the filters can see: a
+missing `.vtp` shows up as a copy of the previous block and ParaView's CSV reader reads an
+empty cell as 0 — run `muscle-mss validate SCENE` on such a folder. The ParaView time slider
+still clamps a time outside the motion, with a warning (`--time` outside it is an error).
+
 This table is generated: `.venv/bin/python tests/bad_input_cases.py > docs/bad-input.md`
 (the test suite checks that each message still matches its case's pattern).
 
