@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from muscle_mss.core import errors
 from muscle_mss.core.errors import MuscleMSSError, first_problem
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, clear_of_obstacles,
@@ -238,6 +239,12 @@ class SpringBuilder(MuscleFilter):
             boundary = boundary_from_grid(grid, fibre_id, fibre_index)
         else:
             boundary = boundary_from_surface(rest, vertices)
+        # the MVC Surface Deformer's weights (surface vertices x cage = boundary particles),
+        # refused here, before the solve, rather than after it
+        errors.check_memory(f"{where}: the surface's mean value coordinates ({len(vertices)} "
+                            f"surface vertices on {int(boundary.sum())} boundary particles)",
+                            8.0 * len(vertices) * int(boundary.sum()),
+                            "lower the Fibre Resampler's ParticlesPerFibre")
         radius = sphere_radii(rest, boundary, vertices, self.value("RadiusHeuristic"))
         return {"rest": rest, "springs": springs, "boundary": boundary, "radius": radius}
 

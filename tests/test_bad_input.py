@@ -153,3 +153,17 @@ def test_sizes_too_large_for_memory_are_refused_before_allocating(monkeypatch):
                        r"100 surface vertices on 8 cage vertices would need 5.96e-06 GiB, more "
                        r"than the 9.31e-07 GiB .*lower ParticlesPerFibre"):
         mean_value_coordinates(cube, triangles, inside, where="muscle 'm': cage")
+
+
+def test_a_resolution_whose_surface_weights_exceed_memory_is_refused_before_the_solve(
+        scenes, monkeypatch):
+    from muscle_mss.core import errors
+    from muscle_mss.filters import motion_run
+    folder, _ = scenes(B.CASES[0])
+    monkeypatch.setattr(errors, "memory_limit", lambda: 100_000)
+    pipeline = motion_run.build_pipeline(str(folder), {"ParticlesPerFibre": 40})
+    with pytest.raises(MuscleMSSError, match=r"particles block 'rectus_femoris': the surface's "
+                       r"mean value coordinates \(\d+ surface vertices on \d+ boundary "
+                       r"particles\) would need .* GiB.*lower the Fibre Resampler's "
+                       r"ParticlesPerFibre"):
+        pipeline.springs.Update()
