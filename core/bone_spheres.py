@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .errors import MuscleMSSError
+from .errors import MuscleMSSError, check_memory
 from .mesh_checks import checked_surface
 
 DEFAULT_SPACING = 2.05          # mm: ~8,600 spheres on the demo pelvis (paper: 8527)
@@ -128,9 +128,15 @@ def surface_area(points, triangles) -> float:
                                                 p[t[:, 2]] - p[t[:, 0]]), axis=1).sum())
 
 
-def _sample(points, triangles, spacing, limit):
+def _sample(points, triangles, spacing, limit, where="bone"):
     q = _subdivisions(points, triangles, spacing / CANDIDATES_PER_SPACING)
     first = np.concatenate([[0], np.cumsum((q + 1) * (q + 2) // 2)])
+    # candidates with their shuffle keys and links (8 doubles each) and the Poisson-disc grid
+    # of spacing-sized cells over the bounding box (one int64 each), counted before allocating
+    cells = float(np.prod(np.floor((points.max(axis=0) - points.min(axis=0)) / spacing) + 1.0))
+    check_memory(f"{where}: bone spheres {spacing:g} mm apart ({int(first[-1])} candidate "
+                 f"points, a grid of {cells:.3g} cells)", 64.0 * first[-1] + 8.0 * cells,
+                 "raise the MSS Collision Solver's BoneSphereSpacing")
     candidates = np.empty((int(first[-1]), 3))
     _candidates(points, triangles, q, first, candidates)
     # shuffled within blocks of neighbouring candidates: random enough for an even
@@ -156,7 +162,7 @@ def bone_spheres(points, triangles, spacing: float | None = None, count: int | N
         spacing = DEFAULT_SPACING if spacing is None else float(spacing)
         if not spacing > 0.0:
             raise MuscleMSSError(f"{where}: bone sphere spacing is {spacing}; it must be positive")
-        centres = _sample(points, triangles, spacing, len(points) + 10 ** 9)
+        centres = _sample(points, triangles, spacing, len(points) + 10 ** 9, where)
         return centres, np.full(len(centres), spacing)
     count = int(count)
     if count < 1:

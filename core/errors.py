@@ -3,6 +3,7 @@
 Every check of user input raises :class:`MuscleMSSError` with a sentence that names what is
 wrong and where (file, block, row, fibre) and the rule it breaks, so that a user can act on it.
 """
+import os
 
 
 class MuscleMSSError(ValueError):
@@ -11,6 +12,32 @@ class MuscleMSSError(ValueError):
     The message names the file / block / row and the broken rule, e.g.
     ``"fibres.vtm block 'gracilis': fibre 12 has 1 point; a fibre needs at least 2"``.
     """
+
+
+def memory_limit() -> int:
+    """Bytes one array of muscle-mss may ask for: a quarter of the machine's physical memory
+    (8 GiB when the system does not say). Larger requests are refused before they are made:
+    an allocation that succeeds by swapping stalls the machine for minutes before failing."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 4
+    except (ValueError, OSError, AttributeError):
+        return 8 * 1024 ** 3
+
+
+def check_memory(what: str, nbytes: float, advice: str) -> None:
+    """Raise :class:`MuscleMSSError` naming ``what``, its size and ``advice`` when ``nbytes``
+    exceeds :func:`memory_limit`."""
+    limit = memory_limit()
+    if nbytes > limit:
+        raise MuscleMSSError(f"{what} would need {nbytes / 1024 ** 3:.3g} GiB, more than the "
+                             f"{limit / 1024 ** 3:.3g} GiB (a quarter of this machine's memory) "
+                             f"one array may take; {advice}")
+
+
+class Interrupted(KeyboardInterrupt):
+    """The user stopped a run (Ctrl-C): not bad input. A filter interrupted inside VTK records
+    it and ``Update()`` raises it, so the run stops as the Ctrl-C asked (the CLI exits with 130)
+    instead of going on with empty outputs."""
 
 
 def first_problem(problems) -> MuscleMSSError:

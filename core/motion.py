@@ -1,7 +1,9 @@
 """The motion table (DESIGN §4): rows of (time, bone, 3x4 rigid transform) to a :class:`Motion`.
 
 Used by the scene validator and by the Rigid Pose Transform filter, so that both apply the same
-rules with the same messages. Rows are numbered from 1 = the first data row (file line 2).
+rules with the same messages. Rows are numbered from 1 = the first data row (file line 2). A row
+naming a bone the scene lacks is reported first: the other rules then fail only as its
+consequence.
 """
 import numpy as np
 
@@ -21,8 +23,11 @@ def rigid_problem(matrix) -> str | None:
         return (f"is not rigid: its 3x3 part is scaled or sheared (|R^T R - I| = {deviation:.3g}); "
                 "each transform must be a rotation plus a translation")
     det = float(np.linalg.det(r))
-    if abs(det - 1.0) > RIGID_TOLERANCE:
+    if det < 0.0:
         return f"is not rigid: its 3x3 part is a reflection (det = {det:.3g}); it must be a rotation"
+    if abs(det - 1.0) > RIGID_TOLERANCE:
+        return (f"is not rigid: its 3x3 part scales volumes by det = {det:.8g} (|R^T R - I| = "
+                f"{deviation:.3g}); a rotation has det 1 within {RIGID_TOLERANCE:g}")
     return None
 
 
@@ -44,12 +49,21 @@ def motion_problems(times, bones, values, known_bones=None, source=MOTION_FILE):
     problems = []
     if len(times) == 0:
         return None, [f"{source}: has no rows; the motion needs at least one time point"]
+    order = list(known_bones) if known_bones is not None else list(dict.fromkeys(bones))
+    index = {b: i for i, b in enumerate(order)}
+    # a bone the scene lacks first: rows added for it break the other rules as a consequence
+    for r, b in enumerate(bones):
+        if b not in index:
+            problems.append(f"{source} row {r + 1}: bone '{b}' is not a bone of the scene "
+                            f"(bones: {', '.join(order)})")
     for r in np.flatnonzero(~np.isfinite(times)):
-        problems.append(f"{source} row {r + 1}: time is not a finite number")
+        problems.append(f"{source} row {r + 1}: time is not a finite number (an empty cell, "
+                        "NaN or inf); every time must be a number")
     bad_rows, bad_cols = np.nonzero(~np.isfinite(values))
     for r, c in zip(bad_rows, bad_cols):
         problems.append(f"{source} row {r + 1} (bone '{bones[r]}'): {MOTION_COLUMNS[2 + c]} is "
-                        "not a finite number; every matrix entry must be finite")
+                        "not a finite number (an empty cell, NaN or inf); every matrix entry "
+                        "must be a number")
     finite_rows = np.isfinite(values).all(axis=1)
     for r in np.flatnonzero(finite_rows):
         why = rigid_problem(values[r].reshape(3, 4))
@@ -60,12 +74,6 @@ def motion_problems(times, bones, values, known_bones=None, source=MOTION_FILE):
         problems.append(f"{source} row {r + 2}: time {times[r + 1]:g} comes after {times[r]:g}; "
                         "times must be ascending")
 
-    order = list(known_bones) if known_bones is not None else list(dict.fromkeys(bones))
-    index = {b: i for i, b in enumerate(order)}
-    for r, b in enumerate(bones):
-        if b not in index:
-            problems.append(f"{source} row {r + 1}: bone '{b}' is not a bone of the scene "
-                            f"(bones: {', '.join(order)})")
     unique_times = np.unique(times[np.isfinite(times)])
     matrices = np.full((len(unique_times), len(order), 3, 4), np.nan)
     seen = np.zeros((len(unique_times), len(order)), dtype=bool)

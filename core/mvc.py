@@ -32,7 +32,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from .errors import MuscleMSSError
+from .errors import MuscleMSSError, check_memory
 from .mesh_checks import surface_problems
 
 DEFAULT_TOLERANCE = 1e-12
@@ -208,6 +208,9 @@ def mean_value_coordinates(cage_points, cage_triangles, points, tolerance=DEFAUL
     centre = 0.5 * (low + high)
     cage_points = cage_points - centre
     points = points - centre
+    check_memory(f"{where}: the mean value coordinates of {len(points)} surface vertices "
+                 f"on {len(cage_points)} cage vertices", 8.0 * len(points) * len(cage_points),
+                 "lower ParticlesPerFibre (the cage holds the boundary particles)")
     weights = np.empty((len(points), len(cage_points)), dtype=np.float64)
     if len(points):
         a, b, c = (cage_points[cage_triangles[:, k]] for k in range(3))

@@ -252,11 +252,12 @@ def _respond_sphere(s, x, v, particle, disp):
 
 
 @njit(cache=True, parallel=True)
-def _step_and_gather(mss, spheres):
+def _step_and_gather(mss, spheres, box, escaped):
     """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step`), each muscle's
     sphere centres then gathered for the collision tests — one parallel region: every region
     costs a thread wake-up (~0.1 ms on a virtual machine), which is a large part of one
-    iteration at N = 80."""
+    iteration at N = 80. ``escaped[m]`` is set when a sphere centre of muscle ``m`` lies
+    outside ``box`` (2, 3) mm or is not finite (tested while the centres are gathered)."""
     (x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr, cage_triangles,
      rest_volume, offsets, runs_int, runs_param, lane_rest, run_ptr, scattered_int,
      scattered_param, scattered_ptr) = mss
@@ -266,8 +267,12 @@ def _step_and_gather(mss, spheres):
         muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus,
                     cage_ptr, cage_triangles, rest_volume, offsets, runs_int, runs_param,
                     lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+        inside = True
         for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
             _gather_sphere(s, x, particle, centres, disp, collided)
+            for axis in range(3):
+                inside &= (centres[axis, s] >= box[0, axis]) & (centres[axis, s] <= box[1, axis])
+        escaped[m] = not inside
 
 
 @njit(cache=True)
@@ -352,6 +357,27 @@ def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
             (mm_lists, mb_begin, mb_end, mb_idx, room))
 
 
+@njit(cache=True, inline="always")
+def _mean_step(x, x_prev, first, last):
+    """Mean distance (mm) particles ``first..last-1`` moved since ``x_prev``."""
+    total = 0.0
+    for p in range(first, last):
+        d2 = 0.0
+        for axis in range(3):
+            d2 += (x[axis, p] - x_prev[axis, p]) ** 2
+        total += np.sqrt(d2)
+    return total / max(last - first, 1)
+
+
+@njit(cache=True)
+def _first_set(flags):
+    """Index of the first nonzero entry of ``flags``, or -1."""
+    for m in range(flags.shape[0]):
+        if flags[m]:
+            return m
+    return -1
+
+
 @njit(cache=True, parallel=True)
 def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, started, lists):
     """Iterations ``first`` up to ``last`` (fewer when a termination stops the loop): the MSS
@@ -360,15 +386,26 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
     x, v, x_prev, offsets = mss[0], mss[1], mss[2], mss[12]
     particle, disp, collided, sphere_ptr = spheres[0], spheres[6], spheres[7], spheres[10]
     mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
-    (use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit) = control
+    (use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit, box) = control
+    escaped = np.zeros(offsets.shape[0] - 1, dtype=np.bool_)
     status = RUNNING
     bad = -1
     rebuilds = 0
     it = first
     while it < last and status == RUNNING:
         t0 = now()
-        _step_and_gather(mss, spheres)
+        _step_and_gather(mss, spheres, box, escaped)
         t1 = now()
+        bad = _first_set(escaped)
+        if bad >= 0:
+            # a sphere left the world box (or is not finite): stop before any collision
+            # structure indexes its grid or tree with it
+            for m in range(mean_disp.shape[1]):
+                mean_disp[it, m] = _mean_step(x, x_prev, offsets[m], offsets[m + 1])
+            seconds[it] = now() - started
+            status = DIVERGED
+            it += 1
+            break
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = _collide(
             spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists)
         rebuilds += refreshed
@@ -379,13 +416,7 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
             for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
                 if collided[s]:
                     _respond_sphere(s, x, v, particle, disp)
-            total = 0.0
-            for p in range(offsets[m], offsets[m + 1]):
-                d2 = 0.0
-                for axis in range(3):
-                    d2 += (x[axis, p] - x_prev[axis, p]) ** 2
-                total += np.sqrt(d2)
-            mean_disp[it, m] = total / max(offsets[m + 1] - offsets[m], 1)
+            mean_disp[it, m] = _mean_step(x, x_prev, offsets[m], offsets[m + 1])
         t4 = now()
         phases[0] += (t1 - t0) + (t4 - t3)
         phases[1] += mm_seconds
@@ -487,6 +518,97 @@ def _check_settings(settings: SolverSettings) -> None:
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
 
 
+def _world_box(positions, bone_centres) -> np.ndarray:
+    """(2, 3) mm: the box no sphere centre may leave during a solve — the bounding box of the
+    posed particles and the bone spheres grown by its own diagonal on every side. A sphere
+    outside it has diverged (a step of the explicit integration too long for the springs):
+    the solve stops before the collision structures index a grid or tree with it."""
+    points = np.concatenate([np.asarray(positions, dtype=np.float64).reshape(-1, 3),
+                             np.asarray(bone_centres, dtype=np.float64).reshape(-1, 3)])
+    lower, upper = points.min(axis=0), points.max(axis=0)
+    grow = max(float(np.linalg.norm(upper - lower)), 1.0)
+    return np.stack([lower - grow, upper + grow])
+
+
+# The Gershgorin bounds of stable_time_step overestimate the stiffest mode (a checkerboard
+# mode of lattice-26 reaches 0.67 of the bound's omega^2), and the implicit drag and the
+# collision response (collided particles stop) widen the stable range: the 3x3x8 lattices of
+# the solver tests still settle at 2.2 times the bound's step and diverge from 2.5 times (in 65
+# iterations; 7 at 3 times). Steps up to this many times the bound's run (a divergence then
+# stops the solve with an error); longer ones are refused before the solve.
+STABILITY_MARGIN = 3.0
+# The per-iteration history (mean displacement of each muscle and four columns) is refused above
+# this size: Iterations caps a time budget's solve, and 1e9 would ask for tens of GiB.
+MAX_HISTORY_BYTES = 2 * 1024 ** 3
+
+
+def stable_time_step(model: MSSModel):
+    """``(dt s, muscle index, particle, kind)``: the longest semi-implicit Euler step that the
+    stiffest particle of the model takes without growing (``kind`` "stiffness" or
+    "damping"), from a Gershgorin bound on the mass-scaled spring stiffness matrix
+    ``M^-1/2 K M^-1/2`` (row i: ``sum_j k_ij (1/m_i + 1/sqrt(m_i m_j))``, fixed particles do
+    not move) and the same bound on the springs' (explicit) damping: ``dt = 2 / omega_max``
+    and ``dt = 2 / gamma_max``. ``inf`` when no free particle has a spring."""
+    springs = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
+    mass = np.asarray(model.mass, dtype=np.float64)
+    free = ~np.asarray(model.fixed, dtype=bool)
+    if len(springs) == 0 or not free.any():
+        return np.inf, 0, 0, "stiffness"
+    with np.errstate(divide="ignore"):
+        inv = np.where(free, 1.0 / mass, 0.0)
+    root = np.sqrt(inv)
+    a, b = springs[:, 0], springs[:, 1]
+    best = (np.inf, 0, 0, "stiffness")
+    for kind, coefficient, scale in (("stiffness", model.stiffness, np.sqrt),
+                                     ("damping", model.damping, lambda r: r)):
+        c = np.asarray(coefficient, dtype=np.float64)
+        cross = c * root[a] * root[b]
+        row = (np.bincount(a, c * inv[a] + cross, minlength=len(mass))
+               + np.bincount(b, c * inv[b] + cross, minlength=len(mass)))
+        p = int(np.argmax(row))
+        if row[p] > 0.0:
+            dt = 2.0 / float(scale(row[p]))
+            if dt < best[0]:
+                muscle = int(np.searchsorted(model.offsets, p, side="right") - 1)
+                best = (dt, muscle, p - int(model.offsets[muscle]), kind)
+    return best
+
+
+def stability_problem(model: MSSModel, time_step: float) -> str | None:
+    """Why ``time_step`` cannot give a meaningful solve of ``model`` (the explicit integration
+    grows without bound: particles jump ~1e8 mm in the first iteration), or None. Refused
+    above :data:`STABILITY_MARGIN` times :func:`stable_time_step`."""
+    dt, m, p, kind = stable_time_step(model)
+    if not time_step > STABILITY_MARGIN * dt:
+        return None
+    lo = int(model.offsets[m])
+    springs = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
+    mine = (springs == lo + p).any(axis=1)
+    total = float(np.asarray(model.stiffness if kind == "stiffness" else model.damping,
+                             dtype=np.float64)[mine].sum())
+    unit = "g/s^2" if kind == "stiffness" else "g/s"
+    fix = ("raise the Spring Builder's Mass or lower its Stiffness" if kind == "stiffness"
+           else "raise the Spring Builder's Mass or lower its Damping")
+    return (f"the model cannot be solved with TimeStep {time_step:g} s: particle {p} of "
+            f"muscle '{model.names[m]}' (mass {float(model.mass[lo + p]):.3g} g, springs of "
+            f"total {kind} {total:.3g} {unit}) is stable only below {dt:.3g} s, and explicit "
+            f"integration would blow up ({time_step / dt:.3g} times too long); lower the "
+            f"MSS Collision Solver's TimeStep below {dt:.3g} s, or {fix}")
+
+
+def check_history_size(iterations, muscles: int) -> None:
+    """Refuse an iteration cap whose per-iteration history would not fit
+    :data:`MAX_HISTORY_BYTES` (it is allocated before the solve starts)."""
+    size = float(iterations) * (muscles + 4) * 8
+    if size > MAX_HISTORY_BYTES:
+        most = int(MAX_HISTORY_BYTES // ((muscles + 4) * 8))
+        raise MuscleMSSError(
+            f"Iterations {int(iterations)} would need a {size / 1024 ** 3:.3g} GiB history "
+            f"({muscles} muscles + 4 values per iteration); at most "
+            f"{MAX_HISTORY_BYTES / 1024 ** 3:.3g} GiB ({most} iterations) are allowed; lower "
+            "Iterations (it caps every termination)")
+
+
 def _divergence_limits(positions, offsets, reach) -> np.ndarray:
     """(M,) mm: a muscle's bounding-box diagonal plus ``reach`` (the farthest one collision
     push can move a sphere) — no sane iteration moves its particles that far on average."""
@@ -510,6 +632,10 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     """
     settings = settings or SolverSettings()
     _check_settings(settings)
+    problem = stability_problem(model, settings.time_step)
+    if problem:
+        raise MuscleMSSError(problem)
+    check_history_size(settings.iterations, len(model.names))
     prep = prepared if prepared is not None else prepare(model)
     offsets = prep.offsets
     n = int(offsets[-1])
@@ -543,7 +669,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
                TERMINATIONS.index(settings.termination), float(settings.displacement_threshold),
                float(settings.time_budget),
                _divergence_limits(posed, offsets, 2.0 * (max(spheres.radius, default=0.0)
-                                                         + max(spheres.bone_radius, default=0.0))))
+                                                         + max(spheres.bone_radius, default=0.0))),
+               _world_box(posed, spheres.bone_centres))
 
     started = time.perf_counter()
     done = 0

@@ -129,11 +129,16 @@ def _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, 
         lower[axis] = lo if lo <= hi else 0.0
         upper[axis] = hi if lo <= hi else 0.0
     while True:
+        # the cell counts are compared as floats, clamped before the int conversion: spheres
+        # spread over 1e8 mm must grow the cell, not overflow the cell count
+        cells = 1.0
         for axis in range(3):
-            dims[axis] = int((upper[axis] - lower[axis]) / cell) + 1
-        if dims[0] * dims[1] * dims[2] <= _cell_capacity(n):
+            cells *= min((upper[axis] - lower[axis]) / cell, 1e12) + 1.0
+        if cells <= _cell_capacity(n):
             break
         cell *= 1.26
+    for axis in range(3):
+        dims[axis] = int((upper[axis] - lower[axis]) / cell) + 1
     keys = dims[0] * dims[1] * dims[2] * levels
     for s in range(n):
         level = 0
@@ -202,6 +207,18 @@ def _cell_of(value, lower, cell, dim):
 
 
 @njit(cache=True, inline="always")
+def _cell_span(value, reach, lower, cell, dim):
+    """Grid indices ``(first, last)`` of the cells within ``reach`` of a coordinate, clamped to
+    ``[0, dim)`` as floats before the int conversion (a coordinate far outside the grid or not
+    finite gives an empty span, never an index out of range)."""
+    lo = np.floor((value - reach - lower) / cell)
+    hi = np.floor((value + reach - lower) / cell)
+    if not (lo <= hi and hi >= 0.0 and lo < dim):
+        return 1, 0
+    return int(max(lo, 0.0)), int(min(hi, dim - 1.0))
+
+
+@njit(cache=True, inline="always")
 def _object_bit(obj):
     """Objects 0..62 have a bit of their own; all others share bit 63 (and are never skipped)."""
     return np.uint64(1) << np.uint64(min(obj, 63))
@@ -221,12 +238,9 @@ def _scan(i, query, q_radius, q_object, table, skin, pad, out, first, room, stam
     own = _object_bit(q_object[i]) if q_object[i] < 63 else np.uint64(0)
     for level in range(levels):
         reach = q_radius[i] + tops[level] + skin + pad
-        x0 = max(int(np.floor((query[0, i] - reach - lower[0]) / cell)), 0)
-        x1 = min(int(np.floor((query[0, i] + reach - lower[0]) / cell)), dims[0] - 1)
-        y0 = max(int(np.floor((query[1, i] - reach - lower[1]) / cell)), 0)
-        y1 = min(int(np.floor((query[1, i] + reach - lower[1]) / cell)), dims[1] - 1)
-        z0 = max(int(np.floor((query[2, i] - reach - lower[2]) / cell)), 0)
-        z1 = min(int(np.floor((query[2, i] + reach - lower[2]) / cell)), dims[2] - 1)
+        x0, x1 = _cell_span(query[0, i], reach, lower[0], cell, dims[0])
+        y0, y1 = _cell_span(query[1, i], reach, lower[1], cell, dims[1])
+        z0, z1 = _cell_span(query[2, i], reach, lower[2], cell, dims[2])
         for ix in range(x0, x1 + 1):
             for iy in range(y0, y1 + 1):
                 row = (ix * dims[1] + iy) * dims[2]

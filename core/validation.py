@@ -9,6 +9,21 @@ import numpy as np
 from .mesh_checks import surface_problems
 from .motion import motion_problems, motion_rows
 from .scene import BONES_FILE, FIBRES_FILE, MUSCLES_FILE, MOTION_FILE, Scene
+from .volume import winding_numbers
+
+# Plausibility of a scene in millimetres (DESIGN §4): a human or animal muscle is longer than
+# MIN_MUSCLE_SIZE across, and a scene lies within MAX_DISTANCE of its origin. A scene in metres
+# (every length 1000 times too small) makes spheres of zero radius and silently switches the
+# collisions off; one offset by 1e12 mm loses every digit of its shape to rounding.
+MIN_MUSCLE_SIZE = 5.0           # mm, bounding-box diagonal
+MAX_DISTANCE = 1.0e4            # mm (10 m)
+# A muscle's fibres run inside it, and a muscle lies outside the bones at rest: at least
+# MIN_INSIDE of a muscle's fibre midpoints lie inside its surface (swapped fibre files, fibres
+# placed 200 mm away), and no more than MAX_IN_BONE of its sampled surface vertices inside a
+# bone. Fractions, not all points: fibre ends sit on the tendons, on or just off the surface.
+MIN_INSIDE = 0.5
+MAX_IN_BONE = 0.5
+SAMPLES = 32                    # surface vertices sampled per muscle for the bone test
 
 
 def fibre_problems(muscle: str, fibres, where: str = FIBRES_FILE) -> list:
@@ -45,6 +60,62 @@ def fibre_problems(muscle: str, fibres, where: str = FIBRES_FILE) -> list:
     return problems
 
 
+def placement_problems(scene: Scene) -> list:
+    """Rules of a plausible scene in millimetres (see :data:`MIN_MUSCLE_SIZE` and below): sizes
+    and distances, fibres inside their muscle, muscles outside the bones at rest. Run on a scene
+    whose surfaces and fibres passed their own rules."""
+    problems = []
+    for file, surfaces in ((MUSCLES_FILE, scene.muscles), (BONES_FILE, scene.bones)):
+        for name, surface in surfaces.items():
+            far = float(np.abs(surface.points).max()) if len(surface.points) else 0.0
+            if far > MAX_DISTANCE:
+                problems.append(
+                    f"{file} block '{name}': a vertex lies {far:.3g} mm from the origin; a scene "
+                    f"farther than {MAX_DISTANCE:g} mm (10 m) from its origin is implausible "
+                    "(lengths are in millimetres); move the scene near the origin")
+    if problems:
+        return problems
+    for name, surface in scene.muscles.items():
+        size = float(np.linalg.norm(surface.points.max(axis=0) - surface.points.min(axis=0)))
+        if size < MIN_MUSCLE_SIZE:
+            problems.append(
+                f"{MUSCLES_FILE} block '{name}': the muscle is {size:.3g} mm across; lengths "
+                f"are in millimetres and a muscle smaller than {MIN_MUSCLE_SIZE:g} mm is "
+                "implausible (is the scene in metres? scale it by 1000)")
+    if problems:
+        return problems
+    for name, surface in scene.muscles.items():
+        fibres = scene.fibres.get(name)
+        if fibres is not None and fibres.count:
+            # each fibre's middle vertex (the mean of the two middle ones for an even count)
+            sizes = np.diff(fibres.offsets)
+            first = fibres.offsets[:-1]
+            middle = 0.5 * (fibres.points[first + (sizes - 1) // 2]
+                            + fibres.points[first + sizes // 2])
+            inside = winding_numbers(middle, surface.points, surface.triangles) > 0.5
+            if inside.mean() < MIN_INSIDE:
+                problems.append(
+                    f"{FIBRES_FILE} block '{name}': {100 * inside.mean():.0f} % of its fibres' "
+                    f"midpoints lie inside {MUSCLES_FILE} block '{name}'; a muscle's fibres "
+                    f"must run inside its surface (at least {100 * MIN_INSIDE:.0f} %): are the "
+                    "fibre files of two muscles swapped, or the fibres moved?")
+        step = max(len(surface.points) // SAMPLES, 1)
+        sample = surface.points[::step]
+        for bone, bone_surface in scene.bones.items():
+            low, high = bone_surface.points.min(axis=0), bone_surface.points.max(axis=0)
+            near = ((sample >= low) & (sample <= high)).all(axis=1)
+            if near.mean() <= MAX_IN_BONE:
+                continue
+            in_bone = winding_numbers(sample[near], bone_surface.points,
+                                      bone_surface.triangles) > 0.5
+            if in_bone.sum() > MAX_IN_BONE * len(sample):
+                problems.append(
+                    f"{MUSCLES_FILE} block '{name}': {100 * in_bone.sum() / len(sample):.0f} % "
+                    f"of its surface lies inside {BONES_FILE} block '{bone}' at rest; a muscle "
+                    "must lie outside the bones in the rest pose")
+    return problems
+
+
 def scene_problems(scene: Scene, rows=None) -> list:
     """All broken rules of a scene, as sentences (empty when the scene is valid).
 
@@ -68,6 +139,8 @@ def scene_problems(scene: Scene, rows=None) -> list:
                         "same names in the same order")
     for name, fibres in scene.fibres.items():
         problems += fibre_problems(name, fibres)
+    if not problems:
+        problems += placement_problems(scene)
     if rows is None and scene.motion is not None:
         rows = motion_rows(scene.motion)
     if rows is None:

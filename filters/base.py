@@ -9,10 +9,16 @@ A filter subclasses :class:`MuscleFilter`, lists its ``INPUTS``, ``OUTPUTS`` (:c
 and ``muscle_mss.plugin`` exposes the same class to ParaView. Bad input (DESIGN §8) is raised by
 the core or the filter as :class:`MuscleMSSError`; the base turns it into a VTK error message
 naming the filter plus empty outputs (what ParaView shows), and :meth:`MuscleFilter.Update`
-re-raises it in Python — the error of the first failing filter upstream, not a follow-on one.
+re-raises it in Python — the error of the first failing filter upstream, not a follow-on one:
+a filter downstream of a failed one empties its outputs without a message of its own. Any other
+exception inside a filter becomes a :class:`MuscleMSSError` naming the filter, the exception and
+the line it came from (:func:`wrapped_error`; VTK would print the traceback and carry on with
+empty outputs); Ctrl-C becomes :class:`~muscle_mss.core.errors.Interrupted`, raised the same way.
 """
 from __future__ import annotations
 
+import os
+import traceback
 from dataclasses import dataclass
 
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
@@ -21,12 +27,14 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject
 from vtkmodules.vtkCommonExecutionModel import (vtkDemandDrivenPipeline,
                                                 vtkStreamingDemandDrivenPipeline)
 
-from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.errors import Interrupted, MuscleMSSError
 
 from .properties import Property
 from .warm_up import ensure_compiled
 
 SDDP = vtkStreamingDemandDrivenPipeline
+# the folder holding core/ and filters/: frames of muscle-mss in a traceback start with it
+_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
 
 
 @dataclass(frozen=True)
@@ -99,6 +107,13 @@ class MuscleFilter(VTKPythonAlgorithmBase):
         self._request, self._out_info = request, outInfo
         outputs = [outInfo.GetInformationObject(i).Get(vtkDataObject.DATA_OBJECT())
                    for i in range(self.GetNumberOfOutputPorts())]
+        if upstream_error(self) is not None:
+            # an upstream filter refused its input and emptied its outputs: its message is the
+            # one to show (Update raises it), not a complaint about the empty data it left here
+            for out in outputs:
+                out.Initialize()
+            self._request = self._out_info = None
+            return 1
         try:
             self._check_properties()
             inputs = []
@@ -112,14 +127,24 @@ class MuscleFilter(VTKPythonAlgorithmBase):
             ensure_compiled(_compile_notice)
             self.execute(inputs, outputs)
         except MuscleMSSError as err:
-            self._error = err
-            for out in outputs:
-                out.Initialize()
-            message = f"{self.LABEL}: {err}"
-            vtkOutputWindow.GetInstance().DisplayErrorText(message + "\n")
+            self._fail(err, outputs)
+        except KeyboardInterrupt:
+            self._fail(Interrupted(f"Ctrl-C while {self.LABEL} ran"),
+                       outputs)
+        except Exception as err:    # VTK would print it and go on with this filter's outputs
+            self._fail(wrapped_error(self.LABEL, err), outputs)
         finally:
             self._request = self._out_info = None
         return 1
+
+    def _fail(self, err, outputs):
+        """Record ``err`` for :meth:`Update`, empty the outputs and show the message (ParaView's
+        output messages; stderr in Python)."""
+        err.filter_label = self.LABEL
+        self._error = err
+        for out in outputs:
+            out.Initialize()
+        vtkOutputWindow.GetInstance().DisplayErrorText(f"{self.LABEL}: {err}\n")
 
     def execute(self, inputs, outputs):
         """Compute ``outputs`` (the output data objects, to fill) from ``inputs`` (data objects,
@@ -186,6 +211,37 @@ def pipeline_error(algorithm):
         return getattr(alg, "_error", None)
 
     return visit(algorithm)
+
+
+def upstream_error(algorithm):
+    """The recorded error of a muscle-mss filter upstream of ``algorithm`` (not itself), or
+    None."""
+    for port in range(algorithm.GetNumberOfInputPorts()):
+        for c in range(algorithm.GetNumberOfInputConnections(port)):
+            error = pipeline_error(algorithm.GetInputConnection(port, c).GetProducer())
+            if error is not None:
+                return error
+    return None
+
+
+def wrapped_error(label: str, err: BaseException) -> MuscleMSSError:
+    """A :class:`MuscleMSSError` for an unexpected exception raised inside filter ``label``:
+    its type, its message (numpy's MemoryError says the size it asked for) and the line of
+    muscle-mss it came from, so that the user sees which filter failed and why."""
+    frames = [f for f in traceback.extract_tb(err.__traceback__)
+              if os.path.abspath(f.filename).startswith(_PACKAGE_ROOT)]
+    place = ""
+    if frames:
+        place = f" at {os.path.basename(frames[-1].filename)}:{frames[-1].lineno}"
+    text = str(err) or "no message"
+    if isinstance(err, MemoryError):
+        wrapped = MuscleMSSError(f"ran out of memory ({text}){place}; lower the sizes asked "
+                                 "of it (particles per fibre, bone sphere spacing, iterations)")
+    else:
+        wrapped = MuscleMSSError(f"failed unexpectedly with {type(err).__name__}: {text}{place}; "
+                                 "this input is not checked — please report it with the scene")
+    wrapped.__cause__ = err
+    return wrapped
 
 
 def _make_setter(prop: Property):

@@ -8,6 +8,7 @@ scene (see :mod:`muscle_mss.filters.motion_run` for the files written).
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time as wallclock
@@ -160,13 +161,25 @@ def cmd_run(args) -> int:
         return 0
     compile_kernels()
     pipeline = motion_run.build_pipeline(args.scene, settings_from(args))
-    index = min(range(len(pipeline.times)), key=lambda i: abs(pipeline.times[i] - args.time))
+    index = time_point_index(pipeline.times, args.time)
     result = motion_run.solve_time_point(pipeline, index)
     motion_run.write_time_point(result, args.out)
     motion_run.write_summary(args.out, result.rows)
     motion_run.write_index(args.out, [result.time], [result.index])
     print(summary_table(result.rows))
     return 0
+
+
+def time_point_index(times, time: float) -> int:
+    """Index of the time point nearest ``time`` (s); a time that is not finite or lies outside
+    the motion is refused (ParaView's time slider clamps it with a warning instead)."""
+    if not math.isfinite(time):
+        raise MuscleMSSError(f"--time {time}: not a finite number; give a time in seconds")
+    first, last = times[0], times[-1]
+    if not first <= time <= last:
+        raise MuscleMSSError(f"--time {time:g} is outside the motion's time range "
+                             f"[{first:g}, {last:g}] s; give a time inside it")
+    return min(range(len(times)), key=lambda i: abs(times[i] - time))
 
 
 def settings_from(args) -> dict:
@@ -236,8 +249,13 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except MuscleMSSError as err:
-        print(f"error: {err}", file=sys.stderr)
+        label = getattr(err, "filter_label", None)
+        print(f"error: {label + ': ' if label else ''}{err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as err:
+        print(f"\ninterrupted: {err or 'by the user (Ctrl-C)'}; the output folder may hold "
+              "part of the results", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

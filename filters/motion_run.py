@@ -110,6 +110,10 @@ def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
     info = pose.GetOutputInformation(0)
     sddp = vtkStreamingDemandDrivenPipeline
     times = list(info.Get(sddp.TIME_STEPS())) if info.Has(sddp.TIME_STEPS()) else []
+    if not times:
+        # no usable motion table: the pose filter's own error says why
+        pose.Update()
+        raise MuscleMSSError(f"{os.path.join(str(scene_folder), MOTION_FILE)} gave no time steps")
     return Pipeline(muscles, fibres, bones, motion, resampler, springs, pose, solver, deformer,
                     probe, times)
 
@@ -393,8 +397,6 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None):
     (:func:`write_summary`, :func:`write_index`) once all time points exist.
     """
     pipeline = build_pipeline(scene_folder, settings)
-    if not pipeline.times:
-        raise RuntimeError(f"{os.path.join(scene_folder, MOTION_FILE)} gave no time steps")
     indices = time_block(len(pipeline.times), *part)
     os.makedirs(out, exist_ok=True)
     rows = []

@@ -54,7 +54,17 @@ class Property:
             return index
         if self.kind == "bool":
             return bool(value)
-        return int(value) if self.kind == "int" else float(value)
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise MuscleMSSError(f"{where}: {value!r} is not a number") from None
+        if self.kind == "int":
+            if number != number or number in (float("inf"), float("-inf")) \
+                    or number != int(number):
+                raise MuscleMSSError(f"{where}: {value!r} is not a whole number; "
+                                     f"{self.name} counts, so it must be an integer")
+            return int(number)
+        return number
 
     def range_problem(self, value, owner: str = "") -> str | None:
         """Why a stored value is outside the property's range, or None.

@@ -5,12 +5,17 @@ reader for the CSV), so what the filters see here is what they see in ParaView.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
+import re
+from xml.etree import ElementTree
 
 import numpy as np
 from vtkmodules.vtkIOInfovis import vtkDelimitedTextReader
-from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataReader, vtkXMLMultiBlockDataWriter
+from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
+from vtkmodules.vtkIOXML import (vtkXMLMultiBlockDataReader, vtkXMLMultiBlockDataWriter,
+                                 vtkXMLPolyDataReader)
 
 from muscle_mss.core.errors import MuscleMSSError, first_problem
 from muscle_mss.core.motion import motion_problems, motion_rows
@@ -87,25 +92,125 @@ def _require(folder, filename):
     return path
 
 
+@contextlib.contextmanager
+def vtk_messages():
+    """Collect VTK's error and warning text while reading instead of printing it (raw "ERR|"
+    lines on stderr): yields a ``vtkStringOutputWindow`` whose ``GetOutput()`` holds it."""
+    previous = vtkOutputWindow.GetInstance()
+    cutoff = vtkLogger.GetCurrentVerbosityCutoff()
+    window = vtkStringOutputWindow()
+    vtkOutputWindow.SetInstance(window)
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+    try:
+        yield window
+    finally:
+        vtkOutputWindow.SetInstance(previous)
+        vtkLogger.SetStderrVerbosity(cutoff)
+
+
+def vtk_error(text: str) -> str | None:
+    """The first VTK error in collected output window text, without the source line and the
+    object's address (``"Error opening file muscles/muscles_1.vtp"``), or None."""
+    lines = text.splitlines()
+    for k, line in enumerate(lines):
+        if line.startswith("ERROR") and k + 1 < len(lines):
+            return re.sub(r"^\w+ \(0x[0-9a-fA-F]+\): ", "", lines[k + 1]).strip()
+    return None
+
+
+def _blocks_listed(path) -> list:
+    """``(name, file)`` of every dataset a ``.vtm`` file lists (``file`` relative to it)."""
+    try:
+        root = ElementTree.parse(path).getroot()
+    except (ElementTree.ParseError, OSError) as err:
+        raise MuscleMSSError(f"{path}: is not a readable VTK multiblock file ({err})") from None
+    return [(d.get("name") or f"block {d.get('index')}", d.get("file"))
+            for d in root.iter("DataSet") if d.get("file")]
+
+
+def _check_block_file(path, name, filename):
+    """Read one block's ``.vtp`` on its own: it must exist and read without a VTK error, and
+    hold points. Returns its number of points."""
+    where = f"{path} block '{name}'"
+    full = os.path.join(os.path.dirname(path), filename)
+    if not os.path.isfile(full):
+        raise MuscleMSSError(f"{where}: its file {full} is missing; every block's file must "
+                             "exist (the reader would show the previous block instead)")
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(full)
+    with vtk_messages() as messages:
+        reader.Update()
+    problem = vtk_error(messages.GetOutput())
+    data = reader.GetOutput()
+    if problem or data is None or data.GetNumberOfPoints() == 0:
+        raise MuscleMSSError(f"{where}: its file {full} could not be read as VTK polydata ("
+                             f"{problem or 'no points'}); every block must be a readable .vtp")
+    return data.GetNumberOfPoints()
+
+
 def multiblock_reader(path):
-    """An updated VTK XML multiblock reader of a ``.vtm`` file (what ParaView uses)."""
+    """An updated VTK XML multiblock reader of a ``.vtm`` file (what ParaView uses), every
+    block checked against its own file: a missing or unreadable ``.vtp`` is an error naming
+    it (VTK's reader would carry the previous block's data into that block and print "ERR|"
+    lines), and so is any VTK error while reading."""
+    listed = _blocks_listed(path)
+    points = [_check_block_file(path, name, filename) for name, filename in listed]
     reader = vtkXMLMultiBlockDataReader()
     reader.SetFileName(path)
-    reader.Update()
+    with vtk_messages() as messages:
+        reader.Update()
+    problem = vtk_error(messages.GetOutput())
+    if problem:
+        raise MuscleMSSError(f"{path}: could not be read ({problem})")
     data = reader.GetOutputDataObject(0)
     if data is None or data.GetNumberOfBlocks() == 0:
         raise MuscleMSSError(f"{path}: could not be read as a multiblock dataset or has no blocks")
+    for k, (name, _) in enumerate(listed):
+        block = data.GetBlock(k) if k < data.GetNumberOfBlocks() else None
+        if block is None or block.GetNumberOfPoints() != points[k]:
+            raise MuscleMSSError(f"{path} block '{name}': the reader did not give the data of "
+                                 "its file; check the .vtm and its .vtp files")
     return reader
 
 
+def _check_cells(path):
+    """Every data row of ``motion.csv`` has a value in every column of its header: an empty or
+    missing cell is an error naming its row (1 = the first data row, as the motion rules count)
+    and column (VTK's reader would read it as 0: a bone moved by tens of millimetres)."""
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise MuscleMSSError(f"{path}: could not be read as CSV ({err})") from None
+    if not rows:
+        return
+    header = [h.strip() for h in rows[0]]
+    for r, row in enumerate(rows[1:], start=1):
+        if not any(cell.strip() for cell in row):
+            continue
+        for c, name in enumerate(header):
+            if c >= len(row) or not row[c].strip():
+                what = "missing" if c >= len(row) else "empty"
+                raise MuscleMSSError(f"{path} row {r} (line {r + 1}), column {name}: the cell is "
+                                     f"{what}; every row needs a value in every column")
+
+
 def motion_reader(path):
-    """An updated delimited-text reader of ``motion.csv`` set up as ParaView's CSV reader."""
+    """An updated delimited-text reader of ``motion.csv`` set up as ParaView's CSV reader, but
+    with empty cells read as NaN (ParaView's default reads them as 0), so that the motion rules
+    name them; VTK's reader errors become our error."""
+    _check_cells(path)
     reader = vtkDelimitedTextReader()
     reader.SetFileName(path)
     reader.SetHaveHeaders(True)
     reader.SetDetectNumericColumns(True)
     reader.SetFieldDelimiterCharacters(",")
-    reader.Update()
+    reader.SetDefaultDoubleValue(float("nan"))
+    with vtk_messages() as messages:
+        reader.Update()
+    problem = vtk_error(messages.GetOutput())
+    if problem:
+        raise MuscleMSSError(f"{path}: could not be read ({problem})")
     return reader
 
 
@@ -161,8 +266,16 @@ def motion_rows_from_table(table, filename=MOTION_FILE):
         times = np.asarray(columns["time"], dtype=np.float64)
         values = np.column_stack([np.asarray(columns[c], dtype=np.float64)
                                   for c in MOTION_COLUMNS[2:]])
-    except ValueError as err:
-        raise MuscleMSSError(f"{filename}: a time or matrix entry is not a number ({err})") from None
+    except ValueError:
+        for c in MOTION_COLUMNS[:1] + MOTION_COLUMNS[2:]:
+            for r, value in enumerate(np.asarray(columns[c], dtype=object)):
+                try:
+                    float(value)
+                except (TypeError, ValueError):
+                    raise MuscleMSSError(f"{filename} row {r + 1}, column {c}: {value!r} is not a "
+                                         "number; every time and matrix entry must be a "
+                                         "number") from None
+        raise MuscleMSSError(f"{filename}: a time or matrix entry is not a number") from None
     return times, [str(b) for b in columns["bone"]], values
 
 

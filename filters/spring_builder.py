@@ -24,12 +24,15 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
-from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core import errors
+from muscle_mss.core.errors import MuscleMSSError, first_problem
+from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, clear_of_obstacles,
                                    shrink_radii, sphere_radii)
-from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE
+from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE, FibreSet, Scene, Surface
 from muscle_mss.core.springs import (delaunay_springs, knn_springs, lattice_springs,
                                      rest_lengths)
+from muscle_mss.core.validation import placement_problems
 
 from . import array_names as A
 from . import vtk_arrays as V
@@ -73,6 +76,52 @@ def surface_vertices(surfaces: dict, name: str) -> np.ndarray:
         raise MuscleMSSError(f"{where} has a NaN or infinite coordinate; every coordinate "
                              "must be finite")
     return vertices
+
+
+def _checked_surface(block, where):
+    """A :class:`Surface` of a block, or None when it is not a closed, oriented triangle
+    surface (the filters that need one say so; a winding number around it means nothing)."""
+    if block is None or not block.IsA("vtkPolyData"):
+        return None
+    try:
+        surface = Surface(V.points_of(block), V.triangles_of(block, where))
+    except MuscleMSSError:
+        return None
+    if len(surface.triangles) == 0 or surface_problems(surface.points, surface.triangles):
+        return None
+    return surface
+
+
+def check_placement(blocks, surfaces: dict, bones) -> None:
+    """The plausibility rules of a scene in millimetres
+    (:func:`muscle_mss.core.validation.placement_problems`: sizes, distance from the origin,
+    fibres inside their muscle, muscles outside the bones at rest) on the filter's inputs, each
+    muscle's particles taken as its fibres (in fibre order). The same rules ``muscle-mss
+    validate`` applies, so that ParaView refuses the same scenes."""
+    muscles, fibres = {}, {}
+    for name, block in blocks:
+        surface = _checked_surface(surfaces.get(name), f"{MUSCLES_FILE} block '{name}'")
+        if surface is None or not block.IsA("vtkPolyData") or block.GetNumberOfPoints() == 0:
+            continue
+        muscles[name] = surface
+        fibre_id = V.point_array(block, A.FIBRE_ID, required=False, dtype=np.int64)
+        fibre_index = V.point_array(block, A.FIBRE_INDEX, required=False, dtype=np.int64)
+        rest = V.point_array(block, A.REST_POSITION, required=False, dtype=np.float64)
+        rest = V.points_of(block) if rest is None else rest.reshape(-1, 3)
+        if fibre_id is None or fibre_index is None or len(rest) != len(fibre_id):
+            continue
+        order = np.lexsort((fibre_index.reshape(-1), fibre_id.reshape(-1)))
+        counts = np.unique(fibre_id, return_counts=True)[1]
+        fibres[name] = FibreSet(rest[order], np.concatenate([[0], np.cumsum(counts)]))
+    rest_bones = {}
+    if bones is not None:
+        for name, block in V.blocks(bones, where=BONES_FILE):
+            surface = _checked_surface(block, f"{BONES_FILE} block '{name}'")
+            if surface is not None:
+                rest_bones[name] = surface
+    problems = placement_problems(Scene(muscles, fibres, rest_bones))
+    if problems:
+        raise first_problem(problems)
 
 
 class SpringBuilder(MuscleFilter):
@@ -143,6 +192,7 @@ class SpringBuilder(MuscleFilter):
             raise MuscleMSSError("the Particles input has no blocks; it needs one block per "
                                  "muscle")
         surfaces = dict(V.blocks(inputs[1], where=MUSCLES_FILE))
+        check_placement(blocks, surfaces, inputs[2])
         models = []
         for done, (name, block) in enumerate(blocks):
             models.append(self._muscle_model(name, block, surface_vertices(surfaces, name),
@@ -202,6 +252,12 @@ class SpringBuilder(MuscleFilter):
             boundary = boundary_from_grid(grid, fibre_id, fibre_index)
         else:
             boundary = boundary_from_surface(rest, vertices)
+        # the MVC Surface Deformer's weights (surface vertices x cage = boundary particles),
+        # refused here, before the solve, rather than after it
+        errors.check_memory(f"{where}: the surface's mean value coordinates ({len(vertices)} "
+                            f"surface vertices on {int(boundary.sum())} boundary particles)",
+                            8.0 * len(vertices) * int(boundary.sum()),
+                            "lower the Fibre Resampler's ParticlesPerFibre")
         radius = sphere_radii(rest, boundary, vertices, self.value("RadiusHeuristic"))
         return {"rest": rest, "springs": springs, "boundary": boundary, "radius": radius}
 

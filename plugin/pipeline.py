@@ -35,6 +35,10 @@ def build_pipeline(scene_folder, show=True, settings=None):
     view and a line chart of the convergence table is added beside it.
     """
     from paraview import simple
+    from muscle_mss.filters.scene_io import load_scene
+    # the checks ParaView's readers do not make (a block whose .vtp is missing or cut, an empty
+    # motion.csv cell read as 0), as muscle-mss validate makes them: refused before building
+    load_scene(scene_folder)
     load_plugin()
     path = lambda name: os.path.join(scene_folder, name)  # noqa: E731  (kept relative if given so)
     p = {}

@@ -387,7 +387,7 @@ def test_text_columns_are_parsed_and_bad_text_is_refused(messages):
                                block_points(make_bones(), "tibia") @ knee(90)[:, :3].T, atol=1e-12)
     columns["m12"][2] = "abc"
     f = pose_filter(V.make_table(columns))
-    with pytest.raises(MuscleMSSError, match="motion.csv: .* not a number"):
+    with pytest.raises(MuscleMSSError, match="motion.csv row 3, column m12: 'abc' is not a number"):
         f.Update()
 
 

@@ -3,6 +3,8 @@
 Each test starts ParaView's own executables with this checkout on PYTHONPATH through
 ``plugin/shim``, so these are the same interpreters, readers and plugin loader users run.
 """
+import json
+
 import pytest
 
 from paraview_support import SCRIPTS, run_script
@@ -181,3 +183,22 @@ def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
     assert loaded["muscle"] == list(MUSCLE_NAMES) + ["mean"]
     assert all(v > 0 for v in loaded["volume"])
     assert loaded["time"] == pytest.approx(scene.motion.times[farthest_pose_index(scene.motion)])
+
+
+@pytest.mark.parametrize("settings, message", [
+    ('{"ParticlesPerFibre": 1}',
+     "Fibre Resampler: property ParticlesPerFibre is 1; it must be at least 2"),
+    ('{"Mass": 1e-8}', "MSS Collision Solver: the model cannot be solved with TimeStep 0.05 s")])
+def test_pvpython_shows_the_failing_filters_message_and_no_follow_on_complaints(
+        small_scene_dir, settings, message):
+    """In ParaView the upstream filter's error is the only message (the downstream filters
+    empty their outputs silently), and springs too stiff for the time step give an error, not
+    a crash of the whole session (the spatial hash segfaulted)."""
+    from paraview_support import run
+    proc = run(["pvpython", SCRIPTS / "bad_input.py", small_scene_dir, settings, "0.5"])
+    result = json.loads(next(line for line in proc.stdout.splitlines()
+                             if line.startswith("RESULT "))[len("RESULT "):])
+    assert result["probe_blocks"] == 0
+    assert message in proc.stderr
+    for follow_on in ("has no muscle blocks", "has no blocks", "has no block '"):
+        assert follow_on not in proc.stderr, proc.stderr[-3000:]

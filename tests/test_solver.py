@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from muscle_mss.core import solver
+from muscle_mss.core import solver, spatial_hash
 from muscle_mss.core.errors import MuscleMSSError
 
 from test_mss import lattice
@@ -105,8 +105,70 @@ def test_switching_collisions_off(pressed):
 
 
 def test_divergence_names_the_muscle(pressed):
+    # inside the margin of the stability bound, so it is not refused up front, and too long
+    # for the springs: the run itself must stop
+    dt = solver.stable_time_step(pressed[0])[0]
     with pytest.raises(MuscleMSSError, match="muscle '(front|back)' diverged.*TimeStep"):
-        run(pressed, iterations=300, time_step=2.0)
+        run(pressed, iterations=300, time_step=0.95 * solver.STABILITY_MARGIN * dt)
+
+
+@pytest.mark.parametrize("structure", solver.STRUCTURES)
+@pytest.mark.parametrize("length, moved", [(1e9, r"\d.*e\+0\d"), (np.inf, "(inf|nan)")])
+def test_a_sphere_thrown_out_of_the_scene_stops_before_collision_detection(
+        pressed, structure, length, moved):
+    """Particles that jump ~1e8 mm (or to inf) in one step are caught before the spatial hash
+    or the BVH index a grid with them (the hash crashed the process with a segfault). A spring
+    whose rest length is 1e9 mm throws its particles that far in the first step."""
+    model, bones = pressed
+    free = ~model.fixed[model.springs].any(axis=1) & (model.springs < 72).all(axis=1)
+    rest = model.rest_length.copy()
+    rest[np.flatnonzero(free)[0]] = length
+    thrown = solver.MSSModel(**{**model.__dict__, "rest_length": rest})
+    with pytest.raises(MuscleMSSError, match=r"muscle 'front' diverged at iteration 1: its mean "
+                       rf"particle displacement was {moved} mm"):
+        solver.solve(thrown, *bones, settings=solver.SolverSettings(iterations=5,
+                                                                    structure=structure))
+
+
+def test_the_grid_spans_take_any_coordinate():
+    span = spatial_hash._cell_span
+    assert span(5.0, 1.0, 0.0, 1.0, 10) == (4, 6)
+    assert span(-5.0, 1.0, 0.0, 1.0, 10) == (1, 0) and span(50.0, 1.0, 0.0, 1.0, 10) == (1, 0)
+    for value in (1e300, -1e300, np.inf, -np.inf, np.nan):
+        first, last = span(value, 1.0, 0.0, 1.0, 10)
+        assert first > last or 0 <= first <= last < 10
+
+
+def test_a_grid_over_spheres_1e8_mm_apart_grows_its_cell_instead_of_overflowing():
+    centres = np.array([[0.0, 1e8, 0.0, 5.0], [0.0, 1e8, 1e8, 5.0], [0.0, 1e8, 3.0, np.nan]])
+    lower, dims, cell, start, items, bits, packed, tops = spatial_hash.grid_table(
+        centres, np.ones(4), 1.0, np.arange(4))
+    assert np.prod(dims.astype(float)) <= 8 * 4 + 64 and cell > 1e6
+    assert sorted(items) == [0, 1, 2, 3] and start[-1] == 4
+
+
+def test_a_time_step_far_beyond_the_stable_one_is_refused_up_front(pressed):
+    model, _ = pressed
+    with pytest.raises(MuscleMSSError, match=r"cannot be solved with TimeStep 2 s: particle \d+ "
+                       r"of muscle 'front' \(mass 1 g, springs of total damping 13 g/s\) is stable only "
+                       r"below 0.0769 s.*\(26 times too long\); lower the "
+                       r"MSS Collision Solver's TimeStep below .*Spring Builder's Mass"):
+        run(pressed, time_step=2.0)
+    light = solver.MSSModel(**{**model.__dict__, "mass": np.full(len(model.mass), 1e-8)})
+    with pytest.raises(MuscleMSSError, match="mass 1e-08 g"):
+        solver.solve(light, settings=solver.SolverSettings())
+    stiff = solver.MSSModel(**{**model.__dict__, "stiffness": np.full(len(model.stiffness), 1e9)})
+    with pytest.raises(MuscleMSSError, match="springs of total stiffness 2.6e\\+10 g/s\\^2.*lower its "
+                       "Stiffness"):
+        solver.solve(stiff, settings=solver.SolverSettings())
+    # a centre particle of the lattice: 26 springs of damping 0.5 g/s, 2 / (26 (1 + 1))
+    assert solver.stable_time_step(model) == (pytest.approx(2 / 26), 0, 34, "damping")
+
+
+def test_an_iteration_history_too_large_for_memory_is_refused(pressed):
+    with pytest.raises(MuscleMSSError, match=r"Iterations 1000000000 would need a 44.7 GiB "
+                       r"history .*lower Iterations"):
+        run(pressed, iterations=10 ** 9, termination="time budget")
 
 
 def test_abort_between_chunks(pressed):

@@ -1,0 +1,394 @@
+"""Bad inputs tried on the small demo scene, and the message each must get (issues 13 and 16).
+
+Each :class:`Case` mutates the small demo scene (in memory before it is written, or its files
+after) and/or sets options, then runs it both ways a user would: ``muscle-mss run SCENE OUT
+--time 0.5`` (:func:`run_cli`) and the bare filter chain of :mod:`muscle_mss.filters.motion_run`
+(:func:`run_chain`, what pvpython and ParaView run). ``tests/test_bad_input.py`` asserts the
+messages; run this file to regenerate the table of ``docs/bad-input.md``::
+
+    .venv/bin/python tests/bad_input_cases.py > docs/bad-input.md
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+import hashlib
+import io
+import os
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.scene import FibreSet
+
+TIME = 0.5          # the time point asked of a single-time run (index 10 of the demo's 21)
+TIME_INDEX = 10
+
+
+@dataclass(frozen=True)
+class Case:
+    """One bad input: ``what`` it is (a line of the table), ``expect`` the regex its message
+    must match (``re.search``), how to make it (``scene`` mutates a copy of the demo scene,
+    ``files`` the written folder, ``options`` of ``muscle-mss run``, ``settings`` filter
+    properties of the chain); ``cli`` / ``chain``: whether that way is tried; ``chain_expect``
+    when the chain's message differs from the CLI's."""
+
+    name: str
+    what: str
+    expect: str
+    scene: Callable | None = None
+    files: Callable | None = None
+    options: tuple = ()
+    settings: dict = field(default_factory=dict)
+    cli: bool = True
+    chain: bool = True
+    chain_expect: str | None = None
+
+
+# ---- mutations ----------------------------------------------------------------------------
+
+def _first(d):
+    return next(iter(d))
+
+
+def _fibres_without(fs: FibreSet, drop: int) -> FibreSet:
+    keep = [f for f in range(fs.count) if f != drop]
+    return FibreSet.from_polylines([fs.fibre(f) for f in keep],
+                                   None if fs.grid is None else fs.grid[keep])
+
+
+def grid_hole(scene):
+    name = _first(scene.fibres)
+    scene.fibres[name] = _fibres_without(scene.fibres[name], 5)
+
+
+def flatten_fibres(axes):
+    def mutate(scene):
+        fs = scene.fibres[_first(scene.fibres)]
+        for axis in axes:
+            fs.points[:, axis] = fs.points[:, axis].mean()
+    return mutate
+
+
+def remove_file(relative):
+    def mutate(folder):
+        os.remove(folder / relative)
+    return mutate
+
+
+def cut_file(relative, keep):
+    def mutate(folder):
+        path = folder / relative
+        path.write_bytes(path.read_bytes()[:keep])
+    return mutate
+
+
+def swap_files(a, b):
+    def mutate(folder):
+        first, second = (folder / a).read_bytes(), (folder / b).read_bytes()
+        (folder / a).write_bytes(second)
+        (folder / b).write_bytes(first)
+    return mutate
+
+
+def csv_cell(row, column, value=""):
+    """Set ``motion.csv`` data row ``row`` (1 = first) in ``column`` to ``value``; None drops
+    that cell and every cell after it."""
+    def mutate(folder):
+        lines = (folder / "motion.csv").read_text().splitlines()
+        header = lines[0].split(",")
+        cells = lines[row].split(",")
+        c = header.index(column)
+        lines[row] = ",".join(cells[:c] if value is None else cells[:c] + [value] + cells[c + 1:])
+        (folder / "motion.csv").write_text("\n".join(lines) + "\n")
+    return mutate
+
+
+def extra_bone_rows(folder):
+    """Rows for a bone 'patella' that bones.vtm lacks, appended at the end of motion.csv."""
+    lines = (folder / "motion.csv").read_text().splitlines()
+    extra = [line.replace(",tibia,", ",patella,") for line in lines[1:] if ",tibia," in line]
+    (folder / "motion.csv").write_text("\n".join(lines + extra) + "\n")
+
+
+def almost_rigid(scene):
+    """One transform scaled by 1 + 4e-6: R^T R within the tolerance, det 1 + 1.2e-5 beyond it."""
+    scene.motion.matrices[3, 1, :, :3] *= 1.0 + 4e-6
+
+
+def transform_scene(scale=1.0, offset=0.0):
+    """Every length times ``scale``, then shifted by ``offset`` mm (motion kept consistent:
+    the bones move about the same shifted points)."""
+    def mutate(scene):
+        shift = np.full(3, offset)
+        for surface in list(scene.muscles.values()) + list(scene.bones.values()):
+            surface.points[:] = surface.points * scale + shift
+        for fibres in scene.fibres.values():
+            fibres.points[:] = fibres.points * scale + shift
+        m = scene.motion.matrices
+        m[..., 3] = m[..., 3] * scale + shift - np.einsum("tbij,j->tbi", m[..., :3], shift)
+    return mutate
+
+
+def move_fibres(dx):
+    def mutate(scene):
+        scene.fibres[_first(scene.fibres)].points[:, 0] += dx
+    return mutate
+
+
+def muscle_into_bone(scene):
+    """The first muscle (surface and fibres) shrunk to a fifth about its centre and moved to
+    the middle of the femur's shaft."""
+    name = _first(scene.muscles)
+    surface, fibres = scene.muscles[name], scene.fibres[name]
+    femur = scene.bones["femur"].points
+    target = 0.5 * (femur.min(axis=0) + femur.max(axis=0))
+    centre = surface.points.mean(axis=0)
+    surface.points[:] = (surface.points - centre) * 0.2 + target
+    fibres.points[:] = (fibres.points - centre) * 0.2 + target
+
+
+# ---- the cases ----------------------------------------------------------------------------
+
+CASES = [
+    Case("resolution-1", "`--resolution 1` (ParticlesPerFibre 1)",
+         r"Fibre Resampler: property ParticlesPerFibre is 1; it must be at least 2",
+         options=("--resolution", "1"), settings={"ParticlesPerFibre": 1}),
+    Case("resolution-0", "`--resolution 0`",
+         r"Fibre Resampler: property ParticlesPerFibre is 0; it must be at least 2",
+         options=("--resolution", "0"), settings={"ParticlesPerFibre": 0}),
+    Case("resolution-negative", "`--resolution -1`",
+         r"Fibre Resampler: property ParticlesPerFibre is -1; it must be at least 2",
+         options=("--resolution", "-1"), settings={"ParticlesPerFibre": -1}),
+    Case("resolution-fraction", "ParticlesPerFibre 2.7 (a filter property set from Python)",
+         r"ParticlesPerFibre: 2.7 is not a whole number", cli=False,
+         settings={"ParticlesPerFibre": 2.7}),
+    Case("iterations-0", "`--iterations 0`",
+         r"MSS Collision Solver: property Iterations is 0; it must be at least 1",
+         options=("--iterations", "0"), settings={"Iterations": 0}),
+    Case("iterations-1e9", "Iterations 1e9 with a time budget (a 60 GiB history here)",
+         r"Iterations 1000000000 would need a .* GiB history .*lower Iterations",
+         options=("--iterations", "1000000000"),
+         settings={"Iterations": 10 ** 9, "Termination": "time budget"}),
+    Case("grid-hole-lattice", "a `fibre_grid` with a hole (one fibre removed), lattice-26",
+         r"Spring Builder: particles block 'rectus_femoris': fibre_grid has no fibre at "
+         r"\(row \d+, col \d+\); lattice layouts need a full rectangular grid",
+         scene=grid_hole),
+    Case("coplanar-delaunay", "a muscle's fibres all in one plane, `--layout Delaunay`",
+         r"Spring Builder: particles block 'rectus_femoris': the Delaunay layout needs "
+         r"particles spanning 3D space",
+         scene=flatten_fibres((1,)), options=("--layout", "Delaunay"),
+         settings={"Layout": "Delaunay"}),
+    Case("collinear-delaunay", "a muscle's fibres all on one line, `--layout Delaunay`",
+         r"Spring Builder: particles block 'rectus_femoris': the Delaunay layout needs "
+         r"particles spanning 3D space",
+         scene=flatten_fibres((0, 1)), options=("--layout", "Delaunay"),
+         settings={"Layout": "Delaunay"}),
+    Case("mass-1e-8", "Spring Builder Mass 1e-8 g (segfault, exit 139, before)",
+         r"MSS Collision Solver: the model cannot be solved with TimeStep 0.05 s: particle \d+ "
+         r"of muscle 'rectus_femoris' \(mass 1e-08 g.*lower the MSS Collision Solver's "
+         r"TimeStep below .* or raise the Spring Builder's Mass",
+         cli=False, settings={"Mass": 1e-8}),
+    Case("stiffness-1e9", "Spring Builder Stiffness 1e9 g/s^2 (segfault, exit 139, before)",
+         r"MSS Collision Solver: the model cannot be solved with TimeStep 0.05 s: .*springs of "
+         r"total stiffness 2.6e\+10 g/s\^2.*lower its Stiffness",
+         cli=False, settings={"Stiffness": 1e9}),
+    Case("bone-spacing-tiny", "BoneSphereSpacing 0.001 mm (17.8 TiB asked, before)",
+         r"bone spheres 0.001 mm apart \(\d+ candidate points, a grid of .* cells\) would need "
+         r".* GiB, more than the .* GiB .*raise the MSS Collision Solver's BoneSphereSpacing",
+         cli=False, settings={"BoneSphereSpacing": 1e-3}),
+    # scene files (issue 16 item 2, issue 13 item 4)
+    Case("muscle-vtp-missing", "`muscles/muscles_1.vtp` deleted (muscles.vtm still names it)",
+         r"muscles.vtm block 'vastus_lateralis': its file .*muscles_1.vtp is missing",
+         files=remove_file("muscles/muscles_1.vtp")),
+    Case("bone-vtp-cut-header", "`bones/bones_1.vtp` cut inside its XML header (first 120 bytes)",
+         r"bones.vtm block 'femur': its file .*bones_1.vtp could not be read as VTK polydata",
+         files=cut_file("bones/bones_1.vtp", 120)),
+    Case("fibre-vtp-cut", "`fibres/fibres_2.vtp` cut in the middle of its data",
+         r"fibres.vtm block 'vastus_intermedius': its file .*fibres_2.vtp could not be read",
+         files=cut_file("fibres/fibres_2.vtp", 3000)),
+    Case("muscles-vtm-cut", "`muscles.vtm` cut inside its XML",
+         r"muscles.vtm: is not a readable VTK multiblock file",
+         files=cut_file("muscles.vtm", 200)),
+    Case("fibre-files-swapped", "`fibres_0.vtp` and `fibres_3.vtp` swapped (names kept)",
+         r"fibres.vtm block 'rectus_femoris': \d+ % of its fibres' midpoints lie inside "
+         r"muscles.vtm block 'rectus_femoris'; a muscle's fibres must run inside its surface",
+         files=swap_files("fibres/fibres_0.vtp", "fibres/fibres_3.vtp")),
+    # motion.csv (issue 16 item 3, issue 13 item 5)
+    Case("csv-empty-translation", "one translation cell of `motion.csv` emptied",
+         r"motion.csv row 6 \(line 7\), column m13: the cell is empty",
+         files=csv_cell(6, "m13")),
+    Case("csv-empty-rotation", "one rotation cell of `motion.csv` emptied",
+         r"motion.csv row 6 \(line 7\), column m01: the cell is empty",
+         files=csv_cell(6, "m01")),
+    Case("csv-missing-cells", "a `motion.csv` row cut short (its last two cells missing)",
+         r"motion.csv row 4 \(line 5\), column m22: the cell is missing",
+         files=csv_cell(4, "m22", None)),
+    Case("csv-not-a-number", "a `motion.csv` cell holding `abc`",
+         r"motion.csv row 5, column m03: 'abc' is not a number",
+         files=csv_cell(5, "m03", "abc")),
+    Case("almost-rigid", "a transform scaled by 1 + 4e-6 (det 1 + 1.2e-5)",
+         r"motion.csv row \d+ \(bone 'femur', time 0.15\): the transform is not rigid: its 3x3 "
+         r"part scales volumes by det = 1.000012",
+         scene=almost_rigid),
+    Case("unknown-bone", "rows for a bone `patella` that bones.vtm lacks, appended to motion.csv",
+         r"motion.csv row 64: bone 'patella' is not a bone of the scene \(bones: pelvis, femur, "
+         r"tibia\)",
+         files=extra_bone_rows),
+    # implausible scenes (issue 16 item 5, issue 13 item 5)
+    Case("scene-in-metres", "the whole scene in metres (every length / 1000)",
+         r"muscles.vtm block 'rectus_femoris': the muscle is 0.\d+ mm across; .*is the scene "
+         r"in metres\? scale it by 1000",
+         scene=transform_scene(scale=1e-3)),
+    Case("scene-offset-1e12", "the whole scene moved by 1e12 mm",
+         r"muscles.vtm block 'rectus_femoris': a vertex lies 1e\+12 mm from the origin; a scene "
+         r"farther than 10000 mm \(10 m\)",
+         scene=transform_scene(offset=1e12)),
+    Case("muscle-inside-bone", "a muscle shrunk to a fifth and placed inside the femur",
+         r"muscles.vtm block 'rectus_femoris': \d+ % of its surface lies inside bones.vtm block "
+         r"'femur' at rest; a muscle must lie outside the bones",
+         scene=muscle_into_bone),
+    Case("fibres-200mm-out", "a muscle's fibres moved 200 mm out of its surface",
+         r"fibres.vtm block 'rectus_femoris': 0 % of its fibres' midpoints lie inside",
+         scene=move_fibres(200.0)),
+    # --time (issue 16 item 6)
+    Case("time-after-end", "`--time 5` (the motion ends at 1 s)",
+         r"--time 5 is outside the motion's time range \[0, 1\] s", options=("--time", "5"),
+         chain=False),
+    Case("time-before-start", "`--time -3`",
+         r"--time -3 is outside the motion's time range \[0, 1\] s", options=("--time", "-3"),
+         chain=False),
+    Case("time-nan", "`--time nan`", r"--time nan: not a finite number",
+         options=("--time", "nan"), chain=False),
+]
+
+
+HEAD = """# Bad input: what each gets
+
+Every bad input below was tried on the small demo scene (`muscle-mss demo-scene OUT --size
+small`), through `muscle-mss run SCENE OUT --time 0.5` and through the bare filter chain (what
+pvpython, pvbatch and ParaView run: there the message appears in the Output Messages window,
+prefixed by the failing filter, and every filter downstream of it shows an empty output without
+a complaint of its own). In Python, `Update()` raises the `MuscleMSSError`. No input file or
+object is ever changed (`tests/test_bad_input.py` checks each folder's files before and after).
+
+Anything a filter raises that is not one of our errors reaches the caller the same way, as
+`FILTER: failed unexpectedly with EXCEPTION: MESSAGE at FILE:LINE` (a
+`MemoryError` as `ran out of memory (SIZE ASKED)`); Ctrl-C stops `muscle-mss run` with exit
+code 130 and `interrupted: Ctrl-C while FILTER ran`.
+
+The scene-file cases (missing or cut `.vtp`, empty `motion.csv` cells) are checked when a scene
+folder is read by muscle-mss: `muscle-mss validate/run`, the batch, and the plugin's pipeline
+builder (`muscle_mss.plugin.pipeline.build_pipeline`, which refuses the folder before building).
+A pipeline assembled by hand from ParaView's own readers gets only what the filters can see: a
+missing `.vtp` shows up as a copy of the previous block and ParaView's CSV reader reads an
+empty cell as 0 — run `muscle-mss validate SCENE` on such a folder. The ParaView time slider
+still clamps a time outside the motion, with a warning (`--time` outside it is an error).
+
+This table is generated: `.venv/bin/python tests/bad_input_cases.py > docs/bad-input.md`
+(the test suite checks that each message still matches its case's pattern).
+
+"""
+
+
+# ---- running a case -------------------------------------------------------------------------
+
+def make_scene(case: Case, folder) -> Path:
+    """Write the small demo scene with ``case``'s mutations into ``folder``."""
+    from muscle_mss.filters.scene_io import write_scene
+    scene = copy.deepcopy(_small())
+    if case.scene is not None:
+        case.scene(scene)
+    folder = Path(folder)
+    write_scene(scene, folder)
+    if case.files is not None:
+        case.files(folder)
+    return folder
+
+
+_SMALL = []
+
+
+def _small():
+    if not _SMALL:
+        from muscle_mss.core.demo_scene import demo_scene
+        _SMALL.append(demo_scene("small"))
+    return _SMALL[0]
+
+
+def folder_digest(folder) -> str:
+    """A digest of every file under ``folder`` (names and contents): inputs must not change."""
+    digest = hashlib.sha1()
+    for root, dirs, files in sorted(os.walk(folder)):
+        dirs.sort()
+        for name in sorted(files):
+            path = os.path.join(root, name)
+            digest.update(os.path.relpath(path, folder).encode())
+            with open(path, "rb") as f:
+                digest.update(f.read())
+    return digest.hexdigest()
+
+
+def run_cli(case: Case, folder, out) -> tuple:
+    """``muscle-mss run folder out --time 0.5 [options]`` in this process: ``(exit code,
+    the message of its "error:" line or None, its stderr)``."""
+    from muscle_mss.filters.cli import main
+    stderr = io.StringIO()
+    with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+        code = main(["run", str(folder), str(out), "--time", str(TIME), *case.options])
+    text = stderr.getvalue()
+    lines = [line[len("error: "):] for line in text.splitlines() if line.startswith("error: ")]
+    return code, (lines[-1] if lines else None), text
+
+
+def run_chain(case: Case, folder):
+    """The filter chain on ``folder`` with ``case.settings`` at time point 10: the message of
+    the :class:`MuscleMSSError` it raises (with the failing filter's label), or None."""
+    from muscle_mss.filters import motion_run
+    try:
+        pipeline = motion_run.build_pipeline(str(folder), case.settings)
+        motion_run.solve_time_point(pipeline, TIME_INDEX)
+    except MuscleMSSError as err:
+        label = getattr(err, "filter_label", None)
+        return f"{label}: {err}" if label else str(err)
+    return None
+
+
+def matches(pattern: str, message) -> bool:
+    return message is not None and re.search(pattern, message) is not None
+
+
+def table(rows) -> str:
+    """The markdown table of ``rows`` = ``(case, cli message, chain message)``."""
+    def cell(text):
+        return "—" if text is None else text.replace("|", "\\|").replace("\n", " ")
+    lines = ["| case | bad input | `muscle-mss run` says (exit 2) | filter chain / ParaView says |",
+             "|---|---|---|---|"]
+    for case, cli, chain in rows:
+        lines.append(f"| `{case.name}` | {case.what} | {cell(cli) if case.cli else '(no option)'} "
+                     f"| {cell(chain) if case.chain else '(not a filter input)'} |")
+    return "\n".join(lines)
+
+
+def main(out=sys.stdout) -> int:
+    """Run every case and print ``docs/bad-input.md``."""
+    import tempfile
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, case in enumerate(CASES):
+            folder = make_scene(case, os.path.join(tmp, f"scene{k}"))
+            cli = run_cli(case, folder, os.path.join(tmp, f"out{k}"))[1] if case.cli else None
+            chain = run_chain(case, folder) if case.chain else None
+            rows.append((case, *(None if m is None else m.replace(str(folder), "SCENE")
+                                 for m in (cli, chain))))
+    out.write(HEAD + table(rows) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,169 @@
+"""Bad input gets our error naming its cause, through `muscle-mss run` and through the filter
+chain, and never changes an input (issues 13 and 16). The cases are the table of
+``tests/bad_input_cases.py`` (also ``docs/bad-input.md``); the tests after them pin what a
+table cannot: no signal, no follow-on complaints, wrapped exceptions, Ctrl-C."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import bad_input_cases as B
+from muscle_mss.core.errors import Interrupted, MuscleMSSError
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """Each case's mutated scene folder, written once, with the digest of its files."""
+    made = {}
+
+    def get(case):
+        if case.name not in made:
+            folder = B.make_scene(case, tmp_path_factory.mktemp(case.name))
+            made[case.name] = (folder, B.folder_digest(folder))
+        return made[case.name]
+    return get
+
+
+@pytest.mark.parametrize("case", [c for c in B.CASES if c.cli], ids=lambda c: c.name)
+def test_muscle_mss_run_names_the_cause(case, scenes, tmp_path):
+    folder, digest = scenes(case)
+    code, message, stderr = B.run_cli(case, folder, tmp_path / "out")
+    assert code == 2, stderr
+    assert B.matches(case.expect, message), message
+    assert B.folder_digest(folder) == digest
+
+
+@pytest.mark.parametrize("case", [c for c in B.CASES if c.chain], ids=lambda c: c.name)
+def test_the_filter_chain_names_the_cause(case, scenes):
+    folder, digest = scenes(case)
+    message = B.run_chain(case, folder)
+    assert B.matches(case.chain_expect or case.expect, message), message
+    assert B.folder_digest(folder) == digest
+
+
+def test_the_docs_table_lists_every_case_with_its_message():
+    text = (ROOT / "docs" / "bad-input.md").read_text()
+    rows = {line.split("|")[1].strip().strip("`"): line for line in text.splitlines()
+            if line.startswith("| `")}
+    for case in B.CASES:
+        assert case.name in rows, case.name
+        cells = [c.strip().replace("\\|", "|") for c in rows[case.name].split(" | ")]
+        if case.cli:
+            assert B.matches(case.expect, cells[2]), (case.name, cells[2])
+        if case.chain:
+            assert B.matches(case.chain_expect or case.expect, cells[3]), (case.name, cells[3])
+
+
+def test_an_upstream_error_is_the_only_message(scenes, tmp_path, capfd):
+    """The filters downstream of a failed one empty their outputs without complaints of their
+    own (they used to end the output with "Volume-Error Probe: DeformedSurfaces: has no muscle
+    blocks")."""
+    case = next(c for c in B.CASES if c.name == "resolution-1")
+    folder, _ = scenes(case)
+    B.run_cli(case, folder, tmp_path / "out")
+    err = capfd.readouterr().err
+    assert "Fibre Resampler: property ParticlesPerFibre is 1" in err
+    for downstream in ("Spring Builder", "MSS Collision Solver", "MVC Surface Deformer",
+                       "Volume-Error Probe"):
+        assert downstream not in err, err
+
+
+@pytest.mark.parametrize("setting", ["Mass=1e-8", "Stiffness=1e9"])
+def test_diverging_springs_end_with_our_error_not_a_signal(setting, scenes):
+    """These crashed the process in the spatial hash (exit 139) before."""
+    folder, digest = scenes(B.CASES[0])
+    name, value = setting.split("=")
+    script = ("import sys; from muscle_mss.filters import motion_run as m\n"
+              f"p = m.build_pipeline({str(folder)!r}, {{{name!r}: {value}}})\n"
+              "m.solve_time_point(p, 10)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 1, (done.returncode, done.stderr[-2000:])
+    assert "MuscleMSSError: the model cannot be solved with TimeStep 0.05 s" in done.stderr
+    assert B.folder_digest(folder) == digest
+
+
+def _probe_failing_with(monkeypatch, exception):
+    from muscle_mss.filters import mvc_surface_deformer
+
+    def execute(self, inputs, outputs):
+        raise exception
+    monkeypatch.setattr(mvc_surface_deformer.MVCSurfaceDeformer, "execute", execute)
+
+
+@pytest.mark.parametrize("exception, expect", [
+    (ZeroDivisionError("float division by zero"),
+     r"MVC Surface Deformer: failed unexpectedly with ZeroDivisionError: float division by "
+     r"zero at test_bad_input.py:\d+; this input is not checked"),
+    (MemoryError("Unable to allocate 7.4 GiB for an array with shape (8000, 124000)"),
+     r"MVC Surface Deformer: ran out of memory \(Unable to allocate 7.4 GiB for an array with "
+     r"shape \(8000, 124000\)\)")])
+def test_any_other_exception_in_a_filter_reaches_the_caller_as_ours(
+        exception, expect, scenes, tmp_path, monkeypatch):
+    _probe_failing_with(monkeypatch, exception)
+    case = B.CASES[0]
+    folder, _ = scenes(case)
+    clean = B.Case("clean", "", "")
+    assert B.matches(expect, B.run_chain(clean, folder))
+    code, message, stderr = B.run_cli(clean, folder, tmp_path / "out")
+    assert code == 2 and B.matches(expect, message), stderr
+
+
+def test_ctrl_c_in_a_filter_stops_the_run_as_an_interruption(scenes, tmp_path, monkeypatch):
+    _probe_failing_with(monkeypatch, KeyboardInterrupt())
+    folder, _ = scenes(B.CASES[0])
+    from muscle_mss.filters import motion_run
+    pipeline = motion_run.build_pipeline(str(folder))
+    with pytest.raises(Interrupted, match="Ctrl-C while MVC Surface Deformer ran"):
+        motion_run.solve_time_point(pipeline, B.TIME_INDEX)
+    code, message, stderr = B.run_cli(B.Case("clean", "", ""), folder, tmp_path / "out")
+    assert code == 130 and message is None
+    assert "interrupted: Ctrl-C while MVC Surface Deformer ran" in stderr
+
+
+def test_integer_properties_refuse_fractions():
+    from muscle_mss.filters import FibreResampler, MSSCollisionSolver
+    with pytest.raises(MuscleMSSError, match="ParticlesPerFibre: 2.7 is not a whole number"):
+        FibreResampler().SetParticlesPerFibre(2.7)
+    with pytest.raises(MuscleMSSError, match="Iterations: nan is not a whole number"):
+        MSSCollisionSolver().SetIterations(float("nan"))
+    solver = MSSCollisionSolver()
+    solver.SetIterations(3.0)
+    assert solver.GetIterations() == 3 and isinstance(solver.GetIterations(), int)
+
+
+def test_sizes_too_large_for_memory_are_refused_before_allocating(monkeypatch):
+    from scipy.spatial import ConvexHull
+    from muscle_mss.core import errors
+    from muscle_mss.core.mvc import mean_value_coordinates
+    cube = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    triangles = ConvexHull(cube).simplices.copy()
+    for t in triangles:   # outward
+        a, b, c = cube[t]
+        if np.dot(np.cross(b - a, c - a), a - 0.5) < 0:
+            t[[1, 2]] = t[[2, 1]]
+    inside = np.full((100, 3), 0.5)
+    assert mean_value_coordinates(cube, triangles, inside).shape == (100, 8)
+    monkeypatch.setattr(errors, "memory_limit", lambda: 1000)
+    with pytest.raises(MuscleMSSError, match=r"muscle 'm': cage: the mean value coordinates of "
+                       r"100 surface vertices on 8 cage vertices would need 5.96e-06 GiB, more "
+                       r"than the 9.31e-07 GiB .*lower ParticlesPerFibre"):
+        mean_value_coordinates(cube, triangles, inside, where="muscle 'm': cage")
+
+
+def test_a_resolution_whose_surface_weights_exceed_memory_is_refused_before_the_solve(
+        scenes, monkeypatch):
+    from muscle_mss.core import errors
+    from muscle_mss.filters import motion_run
+    folder, _ = scenes(B.CASES[0])
+    monkeypatch.setattr(errors, "memory_limit", lambda: 100_000)
+    pipeline = motion_run.build_pipeline(str(folder), {"ParticlesPerFibre": 40})
+    with pytest.raises(MuscleMSSError, match=r"particles block 'rectus_femoris': the surface's "
+                       r"mean value coordinates \(\d+ surface vertices on \d+ boundary "
+                       r"particles\) would need .* GiB.*lower the Fibre Resampler's "
+                       r"ParticlesPerFibre"):
+        pipeline.springs.Update()
