@@ -13,7 +13,10 @@ the user's cache folder.
 """
 import hashlib
 import os
+import re
 import sys
+
+_RESOLVED = re.compile(r"numba-[0-9a-f]{16}-")
 
 
 def sources_digest(folder: str) -> str:
@@ -37,8 +40,13 @@ def runtime_tag() -> str:
 
 
 def base_cache_dir() -> str:
-    """``NUMBA_CACHE_DIR``, else ``$XDG_CACHE_HOME`` or ``~/.cache``, + ``muscle-mss``."""
-    return os.environ.get("NUMBA_CACHE_DIR") or os.path.join(
+    """``NUMBA_CACHE_DIR``, else ``$XDG_CACHE_HOME`` or ``~/.cache``, + ``muscle-mss``. A
+    ``NUMBA_CACHE_DIR`` that is itself one of our folders (exported by
+    :func:`use_kernel_cache_dir`, inherited by a child process) stands for its parent."""
+    base = os.environ.get("NUMBA_CACHE_DIR")
+    if base and _RESOLVED.match(os.path.basename(os.path.normpath(base))):
+        return os.path.dirname(os.path.normpath(base))
+    return base or os.path.join(
         os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
         "muscle-mss")
 
@@ -53,9 +61,14 @@ def kernel_cache_dir(base: str | None = None, folder: str | None = None) -> str:
 
 def use_kernel_cache_dir() -> str:
     """Point Numba's cache at :func:`kernel_cache_dir`; called once when ``core`` is imported,
-    before any kernel is defined (Numba reads the setting when a cached kernel is decorated)."""
+    before any kernel is defined (Numba reads the setting when a cached kernel is decorated).
+    The folder is exported as ``NUMBA_CACHE_DIR`` too: Numba re-reads its whole configuration
+    from the environment whenever the environment changed (a library setting a variable, a
+    test's monkeypatch), and a value set only on ``numba.config`` was then reset to Numba's
+    default, the ``__pycache__`` folders beside the sources."""
     import numba
     path = kernel_cache_dir()
+    os.environ["NUMBA_CACHE_DIR"] = path
     numba.config.CACHE_DIR = path
     return path
 

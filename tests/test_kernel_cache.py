@@ -93,3 +93,18 @@ def test_two_pythons_keep_their_own_kernels(tmp_path):
     assert _files(debian) == debian_files  # its own kernels reused, nothing recompiled
     assert _run_kernel("venv", tmp_path) == venv
     assert _files(venv) == venv_files
+
+
+def test_numba_keeps_the_folder_when_it_rereads_the_environment(monkeypatch):
+    """Numba re-reads its configuration whenever the environment changed (pictures set a VTK
+    variable in the CLI); the cache folder must survive that."""
+    monkeypatch.setenv("MUSCLE_MSS_TEST_ENVIRONMENT_CHANGED", "1")
+    numba.core.config.reload_config()
+    assert numba.config.CACHE_DIR == kernel_cache.kernel_cache_dir()
+
+
+def test_a_child_process_inherits_the_base_not_a_nested_folder(monkeypatch):
+    resolved = kernel_cache.kernel_cache_dir()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", resolved)
+    assert kernel_cache.base_cache_dir() == os.path.dirname(resolved)
+    assert kernel_cache.kernel_cache_dir() == resolved
