@@ -1,8 +1,8 @@
 """The ``muscle-mss`` command: validate scenes, write the demo scene, run the demo and motions.
 
 ``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss demo-scene OUT``
-writes the deterministic demo thigh scene and its ``preview.png``; ``muscle-mss demo [OUT]`` writes
-the demo scene and runs its whole walk; ``muscle-mss run SCENE OUT`` does the same for a user's
+writes the deterministic demo thigh scene (``--region arm``: the elbow) and its ``preview.png``;
+``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE OUT`` does the same for a user's
 scene (see :mod:`muscle_mss.filters.motion_run` for the files written).
 """
 from __future__ import annotations
@@ -36,21 +36,33 @@ def cmd_validate(args) -> int:
     return 0
 
 
-def write_demo_scene(out: str, size: str) -> Scene:
-    """Write the demo scene folder ``out`` and its ``preview.png``; return the scene as read
-    back and checked from the files."""
+DEMO_REGIONS = ("thigh", "arm")
+"""The demo scenes: the thigh's walk (the default) and the elbow's flexion."""
+
+
+def demo_region_scene(region: str, size: str) -> Scene:
+    """The demo scene of ``region`` (one of :data:`DEMO_REGIONS`) at ``size``."""
+    if region == "arm":
+        from muscle_mss.core.demo_arm import demo_arm_scene
+        return demo_arm_scene(size)
     from muscle_mss.core.demo_scene import demo_scene
+    return demo_scene(size)
+
+
+def write_demo_scene(out: str, size: str, region: str = "thigh") -> Scene:
+    """Write the demo scene folder ``out`` of ``region`` and its ``preview.png``; return the
+    scene as read back and checked from the files."""
     from .pictures import scene_preview
     from .scene_io import load_scene, write_scene
-    write_scene(demo_scene(size), out)
+    write_scene(demo_region_scene(region, size), out)
     scene = load_scene(out)
     scene_preview(scene, os.path.join(out, "preview.png"))
     return scene
 
 
 def cmd_demo_scene(args) -> int:
-    scene = write_demo_scene(args.out, args.size)
-    print(f"wrote {args.out} ({args.size}): {scene_counts(scene)}; "
+    scene = write_demo_scene(args.out, args.size, args.region)
+    print(f"wrote {args.out} ({args.region}, {args.size}): {scene_counts(scene)}; "
           f"picture {os.path.join(args.out, 'preview.png')}")
     return 0
 
@@ -123,8 +135,8 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene) ->
 
 def cmd_demo(args) -> int:
     scene_folder = os.path.join(args.out, "scene")
-    scene = write_demo_scene(scene_folder, args.size)
-    print(f"demo scene ({args.size}): {scene_counts(scene)} -> {scene_folder}")
+    scene = write_demo_scene(scene_folder, args.size, args.region)
+    print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> {scene_folder}")
     run_and_report(scene_folder, args.out, settings_from(args), scene)
     return 0
 
@@ -160,6 +172,13 @@ def _add_run_options(p):
     p.add_argument("--iterations", type=int, help="solver iterations per time point (default 500)")
 
 
+def _add_region_option(p):
+    p.add_argument("--region", choices=DEMO_REGIONS, default="thigh",
+                   help="thigh: pelvis, femur, tibia, 13 muscles, a walking cycle (default); "
+                        "arm: scapula, humerus, ulna, radius, the 7 elbow muscles, elbow flexion "
+                        "10 -> 130 -> 10 degrees")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="muscle-mss",
@@ -171,15 +190,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help="scene folder (muscles.vtm, fibres.vtm, bones.vtm, motion.csv)")
     p.set_defaults(func=cmd_validate)
 
-    p = sub.add_parser("demo-scene", help="write the demo thigh scene and preview.png")
+    p = sub.add_parser("demo-scene", help="write a demo scene (thigh or arm) and preview.png")
     p.add_argument("out", help="folder to write")
     p.add_argument("--size", choices=("full", "small"), default="full",
-                   help="full: 13 muscles x 64 fibres; small: a quick variant for tests")
+                   help="full: 64 fibres per muscle (thigh 13 muscles, arm 7); small: a quick "
+                        "variant for tests")
+    _add_region_option(p)
     p.set_defaults(func=cmd_demo_scene)
 
     p = sub.add_parser("demo", help="write the demo scene and run its whole walk")
     p.add_argument("out", nargs="?", default="demo_out", help="output folder (default demo_out)")
     p.add_argument("--size", choices=("full", "small"), default="full")
+    _add_region_option(p)
     _add_run_options(p)
     p.set_defaults(func=cmd_demo)
 
