@@ -508,6 +508,7 @@ def build_muscle(name, spec, envelopes, bones, size):
     # (vertex along the fibre, fibre) -> fibre-major polylines.
     polylines = fibre_points.reshape(size.fibre_vertices, g * g, 3).transpose(1, 0, 2)
     fibres = FibreSet.from_polylines(list(polylines), np.column_stack([rows.ravel(), cols.ravel()]))
+    fibres.origin_bone, fibres.insertion_bone = spec.origin_bone, spec.insertion_bone
     return Surface(points, triangles), fibres
 
 

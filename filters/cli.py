@@ -33,7 +33,23 @@ def cmd_validate(args) -> int:
         print(f"{args.scene}: {len(problems)} problem{'s' if len(problems) > 1 else ''}")
         return 1
     print(f"ok: {scene_counts(scene)}")
+    print(attachment_report(scene))
     return 0
+
+
+def attachment_report(scene: Scene) -> str:
+    """One line per muscle: the origin and insertion bones, each marked as given by the scene
+    or inferred from the nearest bone surface (with the mean distance of the fibre ends)."""
+    from muscle_mss.core.attachments import INSERTION, ORIGIN, scene_attachments
+
+    def describe(a):
+        how = "inferred: nearest bone" if a.inferred else "given"
+        return f"{a.bone} ({how}, fibre ends {a.mean_distance:.1f} mm from it on average)"
+
+    lines = ["attachments (origin -> insertion):"]
+    for muscle, ends in scene_attachments(scene).items():
+        lines.append(f"  {muscle}: {describe(ends[ORIGIN])} -> {describe(ends[INSERTION])}")
+    return "\n".join(lines)
 
 
 DEMO_REGIONS = ("thigh", "arm")
