@@ -36,11 +36,13 @@ through the centres of the trochlea and the capitulum; scapula and humerus stay 
 """
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
-from .demo_geometry import (MuscleSpec, SampledField, Size, build_muscle, ellipsoid, frame,
-                            make_envelopes, mesh_sampled, project_to_surface, rotation_about,
-                            round_cone, smooth_union, sphere, v)
+from .demo_geometry import (MuscleSpec, SampledField, Size, around, build_muscle, ellipsoid,
+                            frame, make_envelopes, mesh_sampled, project_to_surface,
+                            rotation_about, round_cone, smooth_union, sphere, v)
 from .errors import MuscleMSSError
 from .scene import Motion, Scene
 
@@ -252,11 +254,8 @@ def _arm_axis(z):
     return np.column_stack([8.0 - 6.0 * s, np.zeros_like(z), z])
 
 
-def _around(z, theta_deg, rho):
-    """The point at height ``z``, ``rho`` mm from the arm's axis in direction ``theta_deg``
-    (0 lateral, 90 anterior, 180 medial, 270 posterior)."""
-    a = np.radians(theta_deg)
-    return _arm_axis(np.array([z]))[0] + rho * np.array([np.cos(a), np.sin(a), 0.0])
+_around = partial(around, _arm_axis)
+"""``_around(z, theta_deg, rho)``: :func:`.demo_geometry.around` the arm's axis."""
 
 
 _MUSCLES = {
@@ -273,7 +272,8 @@ _MUSCLES = {
          _around(-255.0, 96.0, 30.0), v(6.0, 28.0, -302.0)),
         radial=11.0, tangential=12.0, peak=0.55, fullness=0.5),
     "brachialis": MuscleSpec(
-        "humerus", _around(-150.0, 90.0, 11.0), "ulna", _forearm(*(ULNAR_TUBEROSITY + v(0.0, 2.0, 4.0))),
+        "humerus", _around(-150.0, 90.0, 11.0),
+        "ulna", _forearm(*(ULNAR_TUBEROSITY + v(0.0, 2.0, 4.0))),
         (_around(-200.0, 90.0, 19.0), _around(-255.0, 90.0, 22.0), v(-2.0, 31.0, -306.0)),
         radial=9.0, tangential=22.0, peak=0.55, fullness=0.6),
     "brachioradialis": MuscleSpec(
@@ -282,12 +282,14 @@ _MUSCLES = {
          _forearm(32.0, 12.0, -500.0)),
         radial=9.0, tangential=12.0, peak=0.35, fullness=0.6),
     "triceps_long_head": MuscleSpec(
-        "scapula", INFRAGLENOID_TUBERCLE + v(0.0, -4.0, 0.0), "ulna", _forearm(*(OLECRANON + v(-2.0, -6.0, 10.0))),
+        "scapula", INFRAGLENOID_TUBERCLE + v(0.0, -4.0, 0.0),
+        "ulna", _forearm(*(OLECRANON + v(-2.0, -6.0, 10.0))),
         (v(-24.0, -22.0, -60.0), _around(-120.0, 225.0, 32.0), _around(-200.0, 240.0, 34.0),
          _around(-260.0, 258.0, 24.0)),
         radial=13.0, tangential=15.0, peak=0.5, fullness=0.5),
     "triceps_lateral_head": MuscleSpec(
-        "humerus", _around(-70.0, 320.0, 12.0), "ulna", _forearm(*(OLECRANON + v(2.0, -6.0, 10.0))),
+        "humerus", _around(-70.0, 320.0, 12.0),
+        "ulna", _forearm(*(OLECRANON + v(2.0, -6.0, 10.0))),
         (_around(-125.0, 300.0, 26.0), _around(-200.0, 288.0, 30.0), _around(-260.0, 278.0, 22.0)),
         radial=11.0, tangential=18.0, peak=0.5, fullness=0.5),
     "triceps_medial_head": MuscleSpec(

@@ -281,6 +281,13 @@ def project_to_surface(field, point, steps: int = 8) -> np.ndarray:
 
 # ---- muscles -------------------------------------------------------------------------------
 
+def around(axis, z, theta_deg, rho) -> np.ndarray:
+    """The point at height ``z``, ``rho`` mm from the limb ``axis`` (as in :class:`Envelope`) in
+    direction ``theta_deg`` (0 lateral, 90 anterior, 180 medial, 270 posterior)."""
+    a = np.radians(theta_deg)
+    return axis(np.array([z]))[0] + rho * np.array([np.cos(a), np.sin(a), 0.0])
+
+
 @dataclass(frozen=True)
 class MuscleSpec:
     """One demo muscle: attachments, centreline way-points and belly shape."""

@@ -18,11 +18,13 @@ and the tibia additionally about the knee axis, after normative sagittal gait cu
 """
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from scipy.interpolate import CubicSpline
 
 from .demo_geometry import (MuscleSpec as _MuscleSpec, SampledField, Size as _Size,  # noqa: F401
-                            build_muscle, compose as _compose, ellipsoid as _ellipsoid,
+                            around, build_muscle, compose as _compose, ellipsoid as _ellipsoid,
                             frame as _frame, make_envelopes, mesh_implicit, mesh_sampled,
                             project_to_surface, rotation_about, round_cone as _round_cone,
                             smooth_union as _blend, sphere as _sphere, v as _v)
@@ -229,11 +231,8 @@ def _thigh_axis(z):
     return _SHAFT_TOP + s[:, None] * (_SHAFT_BOTTOM - _SHAFT_TOP)
 
 
-def _around(z, theta_deg, rho):
-    """The point at height ``z``, ``rho`` mm from the thigh axis in direction ``theta_deg``
-    (0 lateral, 90 anterior, 180 medial, 270 posterior)."""
-    a = np.radians(theta_deg)
-    return _thigh_axis(np.array([z]))[0] + rho * np.array([np.cos(a), np.sin(a), 0.0])
+_around = partial(around, _thigh_axis)
+"""``_around(z, theta_deg, rho)``: :func:`.demo_geometry.around` the thigh axis."""
 
 
 _MUSCLES = {

@@ -1,11 +1,14 @@
 """Geometric probes of closed triangle surfaces for the demo-scene tests (VTK only): which points
-are inside, signed distances, the gap between two surfaces."""
+are inside, signed distances, the gap between two surfaces; and scene equality."""
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkIdTypeArray, vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
 from vtkmodules.vtkFiltersModeling import vtkSelectEnclosedPoints
+
+from muscle_mss.core.mesh_checks import surface_problems
+from muscle_mss.core.volume import signed_volume
 
 
 def polydata(points, triangles):
@@ -65,3 +68,30 @@ def gap(a, b):
         if len(near):
             gaps.append(signed_distance(other, near).min())
     return min(gaps)
+
+
+def assert_identical_scenes(a, b):
+    """Every array of scenes ``a`` and ``b`` (surfaces, fibres, attachments, motion) is equal."""
+    for group in ("muscles", "bones"):
+        assert list(getattr(a, group)) == list(getattr(b, group))
+        for name, surface in getattr(a, group).items():
+            other = getattr(b, group)[name]
+            assert np.array_equal(surface.points, other.points), name
+            assert np.array_equal(surface.triangles, other.triangles), name
+    for name, fibres in a.fibres.items():
+        other = b.fibres[name]
+        assert np.array_equal(fibres.points, other.points), name
+        assert np.array_equal(fibres.offsets, other.offsets), name
+        assert np.array_equal(fibres.grid, other.grid), name
+        assert (fibres.origin_bone, fibres.insertion_bone) == (other.origin_bone,
+                                                               other.insertion_bone)
+    assert np.array_equal(a.motion.matrices, b.motion.matrices)
+    assert np.array_equal(a.motion.times, b.motion.times)
+
+
+def assert_closed_and_outward(scene):
+    """Every bone and muscle surface of ``scene`` is closed, manifold and outward oriented."""
+    for name, surface in list(scene.bones.items()) + list(scene.muscles.items()):
+        assert surface.points.dtype == np.float64 and surface.triangles.dtype == np.int64
+        assert surface_problems(surface.points, surface.triangles) == [], name
+        assert signed_volume(surface.points, surface.triangles) > 0.0, name

@@ -12,10 +12,11 @@ import pytest
 
 from muscle_mss.core import demo_scene as demo
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.motion import rigid_problem
+from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.volume import signed_volume
-from surface_probes import gap as _gap, inside as _inside, signed_distance as _signed_distance
+from surface_probes import (assert_closed_and_outward, assert_identical_scenes, gap as _gap,
+                            inside as _inside, signed_distance as _signed_distance)
 
 # Muscles that lie on the femur along their belly: the vasti, the short head of biceps and
 # adductor magnus.
@@ -74,18 +75,7 @@ def test_unknown_size_is_refused():
 
 
 def test_demo_scene_is_deterministic(small):
-    again = demo.demo_scene("small")
-    for group in ("muscles", "bones"):
-        for name, surface in getattr(small, group).items():
-            other = getattr(again, group)[name]
-            assert np.array_equal(surface.points, other.points), name
-            assert np.array_equal(surface.triangles, other.triangles), name
-    for name, fibres in small.fibres.items():
-        assert np.array_equal(fibres.points, again.fibres[name].points)
-        assert np.array_equal(fibres.offsets, again.fibres[name].offsets)
-        assert np.array_equal(fibres.grid, again.fibres[name].grid)
-    assert np.array_equal(small.motion.matrices, again.motion.matrices)
-    assert np.array_equal(small.motion.times, again.motion.times)
+    assert_identical_scenes(small, demo.demo_scene("small"))
 
 
 # ---- surfaces ------------------------------------------------------------------------------
@@ -93,10 +83,7 @@ def test_demo_scene_is_deterministic(small):
 @pytest.mark.parametrize("size", ["full", "small"])
 def test_every_surface_is_closed_manifold_and_outward(size, full, small):
     scene = full if size == "full" else small
-    for name, surface in list(scene.bones.items()) + list(scene.muscles.items()):
-        assert surface.points.dtype == np.float64 and surface.triangles.dtype == np.int64
-        assert surface_problems(surface.points, surface.triangles) == [], name
-        assert signed_volume(surface.points, surface.triangles) > 0.0, name
+    assert_closed_and_outward(scene)
 
 
 def test_bones_are_shaped_like_bones(full):
