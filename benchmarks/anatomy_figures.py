@@ -6,7 +6,8 @@ Solves each time point with the default settings (the six filters of ``muscle-ms
 prints, per time point and muscle, the volume error (%) and the attachment error: the distance
 (mm) of each solved fixed end particle from where its attachment bone's transform carries its
 rest position (bones from the ``origin_bone`` / ``insertion_bone`` field data of fibres.vtm),
-mean and max over the muscle's fibre ends; then the mean and max over everything. It uses only
+mean and max over the muscle's fibre ends, and the largest fibre strain; then the mean and max
+over everything. It uses only
 the pipeline's outputs, so it measures any version of the filters the same way.
 """
 import sys
@@ -51,8 +52,8 @@ def main(folder, indices):
     ends = attachment_bones(folder)
     bones = list(scene.bones)
     pipeline = motion_run.build_pipeline(folder, {})
-    print(f"{'t s':>6s} {'muscle':28s} {'vol err %':>9s} {'attach mean mm':>14s} {'max mm':>7s} "
-          f"{'s':>6s}")
+    print(f"{'t s':>6s} {'muscle':28s} {'vol err %':>9s} {'max strain':>10s} "
+          f"{'attach mean mm':>14s} {'max mm':>7s} {'s':>6s}")
     volume, attach = [], []
     for i in indices:
         start = time.perf_counter()
@@ -64,7 +65,8 @@ def main(folder, indices):
             name = row["muscle"]
             volume.append(float(row["volume_error_pct"]))
             attach.append(errors[name])
-            print(f"{result.time:6.3f} {name:28s} {volume[-1]:9.2f} {errors[name][0]:14.3f} "
+            print(f"{result.time:6.3f} {name:28s} {volume[-1]:9.2f} "
+                  f"{float(row['max_fibre_strain']):10.3f} {errors[name][0]:14.3f} "
                   f"{errors[name][1]:7.3f} {seconds:6.1f}", flush=True)
     attach = np.array(attach)
     print(f"volume error % mean {np.mean(volume):.2f} max {np.max(volume):.2f} "
