@@ -1,8 +1,9 @@
 """Volume error and attachment error of a scene at chosen time points (issue 12).
 
-    python benchmarks/anatomy_figures.py SCENE INDEX [INDEX ...]
+    python benchmarks/anatomy_figures.py SCENE INDEX [INDEX ...] [Property=value ...]
 
-Solves each time point with the default settings (the six filters of ``muscle-mss run``) and
+Solves each time point with the default settings (or the given filter properties, e.g.
+``BulkModulus=50``) (the six filters of ``muscle-mss run``) and
 prints, per time point and muscle, the volume error (%) and the attachment error: the distance
 (mm) of each solved fixed end particle from where its attachment bone's transform carries its
 rest position (bones from the ``origin_bone`` / ``insertion_bone`` field data of fibres.vtm),
@@ -47,11 +48,11 @@ def attachment_errors(particles, ends, bones, matrices):
     return out
 
 
-def main(folder, indices):
+def main(folder, indices, settings):
     scene = load_scene(folder)
     ends = attachment_bones(folder)
     bones = list(scene.bones)
-    pipeline = motion_run.build_pipeline(folder, {})
+    pipeline = motion_run.build_pipeline(folder, settings)
     print(f"{'t s':>6s} {'muscle':28s} {'vol err %':>9s} {'max strain':>10s} "
           f"{'attach mean mm':>14s} {'max mm':>7s} {'s':>6s}")
     volume, attach = [], []
@@ -75,4 +76,6 @@ def main(folder, indices):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], [int(a) for a in sys.argv[2:]])
+    pairs = [a.split("=", 1) for a in sys.argv[2:] if "=" in a]
+    main(sys.argv[1], [int(a) for a in sys.argv[2:] if "=" not in a],
+         {name: float(value) for name, value in pairs})
