@@ -33,12 +33,16 @@ class FibreSet:
 
     ``points`` (n, 3) float64 holds all fibre vertices; fibre ``f`` is
     ``points[offsets[f]:offsets[f + 1]]``. ``grid`` (F, 2) int32 is the optional
-    ``fibre_grid`` (row, col) of each fibre, or None.
+    ``fibre_grid`` (row, col) of each fibre, or None. ``origin_bone`` and ``insertion_bone``
+    name the bones the fibres' first and last points are attached to, or None when the scene
+    does not say (then :mod:`.attachments` infers them).
     """
 
     points: np.ndarray
     offsets: np.ndarray
     grid: np.ndarray | None = None
+    origin_bone: str | None = None
+    insertion_bone: str | None = None
 
     @property
     def count(self) -> int:

@@ -36,6 +36,9 @@ MUSCLE = "muscle"                    # string, the muscle (block) name; last row
 
 # Field data.
 MUSCLE_NAME = "muscle_name"          # string, the block name
+ORIGIN_BONE = "origin_bone"          # string, bone of the fibres' first points (fibres.vtm,
+                                     # optional; carried to the particles and the model)
+INSERTION_BONE = "insertion_bone"    # string, bone of the fibres' last points (likewise)
 BONE_NAMES = "bone_names"            # string x B, order of the bone_weights components
 REST_VOLUME = "rest_volume"          # float64, mm^3 (Volume-Error Probe)
 VOLUME = "volume"                    # float64, mm^3

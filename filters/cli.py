@@ -1,8 +1,8 @@
 """The ``muscle-mss`` command: validate scenes, write the demo scene, run the demo and motions.
 
 ``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss demo-scene OUT``
-writes the deterministic demo thigh scene and its ``preview.png``; ``muscle-mss demo [OUT]`` writes
-the demo scene and runs its whole walk; ``muscle-mss run SCENE OUT`` does the same for a user's
+writes the deterministic demo thigh scene (``--region arm``: the elbow) and its ``preview.png``;
+``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE OUT`` does the same for a user's
 scene (see :mod:`muscle_mss.filters.motion_run` for the files written).
 """
 from __future__ import annotations
@@ -34,24 +34,52 @@ def cmd_validate(args) -> int:
         print(f"{args.scene}: {len(problems)} problem{'s' if len(problems) > 1 else ''}")
         return 1
     print(f"ok: {scene_counts(scene)}")
+    print(attachment_report(scene))
     return 0
 
 
-def write_demo_scene(out: str, size: str) -> Scene:
-    """Write the demo scene folder ``out`` and its ``preview.png``; return the scene as read
-    back and checked from the files."""
+def attachment_report(scene: Scene) -> str:
+    """One line per muscle: the origin and insertion bones, each marked as given by the scene
+    or inferred from the nearest bone surface (with the mean distance of the fibre ends)."""
+    from muscle_mss.core.attachments import INSERTION, ORIGIN, scene_attachments
+
+    def describe(a):
+        how = "inferred: nearest bone" if a.inferred else "given"
+        return f"{a.bone} ({how}, fibre ends {a.mean_distance:.1f} mm from it on average)"
+
+    lines = ["attachments (origin -> insertion):"]
+    for muscle, ends in scene_attachments(scene).items():
+        lines.append(f"  {muscle}: {describe(ends[ORIGIN])} -> {describe(ends[INSERTION])}")
+    return "\n".join(lines)
+
+
+DEMO_REGIONS = ("thigh", "arm")
+"""The demo scenes: the thigh's walk (the default) and the elbow's flexion."""
+
+
+def demo_region_scene(region: str, size: str) -> Scene:
+    """The demo scene of ``region`` (one of :data:`DEMO_REGIONS`) at ``size``."""
+    if region == "arm":
+        from muscle_mss.core.demo_arm import demo_arm_scene
+        return demo_arm_scene(size)
     from muscle_mss.core.demo_scene import demo_scene
+    return demo_scene(size)
+
+
+def write_demo_scene(out: str, size: str, region: str = "thigh") -> Scene:
+    """Write the demo scene folder ``out`` of ``region`` and its ``preview.png``; return the
+    scene as read back and checked from the files."""
     from .pictures import scene_preview
     from .scene_io import load_scene, write_scene
-    write_scene(demo_scene(size), out)
+    write_scene(demo_region_scene(region, size), out)
     scene = load_scene(out)
     scene_preview(scene, os.path.join(out, "preview.png"))
     return scene
 
 
 def cmd_demo_scene(args) -> int:
-    scene = write_demo_scene(args.out, args.size)
-    print(f"wrote {args.out} ({args.size}): {scene_counts(scene)}; "
+    scene = write_demo_scene(args.out, args.size, args.region)
+    print(f"wrote {args.out} ({args.region}, {args.size}): {scene_counts(scene)}; "
           f"picture {os.path.join(args.out, 'preview.png')}")
     return 0
 
@@ -143,8 +171,8 @@ def cmd_demo(args) -> int:
     if check_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
         print(f"replacing the results of the previous run in {args.out}")
     scene_folder = os.path.join(args.out, "scene")
-    scene = write_demo_scene(scene_folder, args.size)
-    print(f"demo scene ({args.size}): {scene_counts(scene)} -> {scene_folder}")
+    scene = write_demo_scene(scene_folder, args.size, args.region)
+    print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> {scene_folder}")
     run_and_report(scene_folder, args.out, settings_from(args), scene)
     return 0
 
@@ -210,6 +238,13 @@ def add_method_options(p):
                         "(default 0.001)")
 
 
+def _add_region_option(p):
+    p.add_argument("--region", choices=DEMO_REGIONS, default="thigh",
+                   help="thigh: pelvis, femur, tibia, 13 muscles, a walking cycle (default); "
+                        "arm: scapula, humerus, ulna, radius, the 7 elbow muscles, elbow flexion "
+                        "10 -> 130 -> 10 degrees")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="muscle-mss",
@@ -221,15 +256,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help="scene folder (muscles.vtm, fibres.vtm, bones.vtm, motion.csv)")
     p.set_defaults(func=cmd_validate)
 
-    p = sub.add_parser("demo-scene", help="write the demo thigh scene and preview.png")
+    p = sub.add_parser("demo-scene", help="write a demo scene (thigh or arm) and preview.png")
     p.add_argument("out", help="folder to write")
     p.add_argument("--size", choices=("full", "small"), default="full",
-                   help="full: 13 muscles x 64 fibres; small: a quick variant for tests")
+                   help="full: 64 fibres per muscle (thigh 13 muscles, arm 7); small: a quick "
+                        "variant for tests")
+    _add_region_option(p)
     p.set_defaults(func=cmd_demo_scene)
 
     p = sub.add_parser("demo", help="write the demo scene and run its whole walk")
     p.add_argument("out", nargs="?", default="demo_out", help="output folder (default demo_out)")
     p.add_argument("--size", choices=("full", "small"), default="full")
+    _add_region_option(p)
     _add_run_options(p)
     p.set_defaults(func=cmd_demo)
 

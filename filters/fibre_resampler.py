@@ -5,7 +5,8 @@ from origin to insertion, optional cell data ``fibre_grid`` (row, col). Output `
 same blocks in the same order, each a vtkPolyData whose points are the particles, fibre by fibre
 from origin to insertion, one polyline cell per fibre through its particles (for display), point
 data ``rest_position``, ``fibre_id``, ``fibre_index``, ``fixed`` and ``fibre_grid`` (when the
-fibres have it), field data ``muscle_name`` and the three properties.
+fibres have it), field data ``muscle_name``, the three properties, and ``origin_bone`` /
+``insertion_bone`` when the fibres block names them (the Rigid Pose Transform reads them).
 
 The random placement of a muscle is seeded by ``Seed`` together with the muscle's name, so each
 muscle gets the same particles whatever the order or number of the other blocks.
@@ -113,6 +114,9 @@ class FibreResampler(MuscleFilter):
                 V.set_point_array(out, A.FIBRE_GRID, grid[fibre_id])
             V.set_point_array(out, A.FIXED, fixed)
             V.set_field(out, A.MUSCLE_NAME, name)
+            for array in (A.ORIGIN_BONE, A.INSERTION_BONE):
+                if V.field(block, array) is not None:
+                    V.set_field(out, array, V.field(block, array))
             V.set_field(out, "ParticlesPerFibre", n)
             V.set_field(out, "Randomise", int(randomise))
             V.set_field(out, "Seed", seed)

@@ -11,6 +11,8 @@ import numpy as np
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 from vtkmodules.vtkCommonDataModel import vtkDataObject
 
+from muscle_mss.core.attachments import (INSERTION, ORIGIN, fixed_particle_bones, nearest_bone,
+                                         unknown_bone_problem)
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import motion_from_rows
 from muscle_mss.core.pose import BLENDINGS, DUAL_QUATERNION, blend, bone_weights, pose_at, \
@@ -32,6 +34,34 @@ def _finite(rest, where: str) -> np.ndarray:
         raise MuscleMSSError(f"{where}: point {int(np.flatnonzero(bad)[0])} has a NaN or infinite "
                              "rest coordinate; every coordinate must be finite")
     return rest
+
+
+def _attached_bones(block, rest, bone_names, bone_surfaces, labels, where: str):
+    """``(bone index of every particle (n,) int64, {field name: bone name})`` of a model block:
+    -1 for free particles; the fixed
+    particles at fibre index 0 follow the block's ``origin_bone``, those at the fibres' last
+    index its ``insertion_bone`` (field data carried from fibres.vtm); a bone not named there is
+    the one nearest on average to that end's rest positions. The dict gives the bone of each
+    end (``origin_bone``, ``insertion_bone``) that has fixed particles."""
+    ends = fixed_particle_bones(V.point_array(block, A.FIBRE_ID, where=where),
+                                V.point_array(block, A.FIBRE_INDEX, where=where),
+                                V.point_array(block, A.FIXED, where=where), 0, 1)
+    out = np.full(len(ends), -1, dtype=np.int64)
+    names = {}
+    for code, end, array in ((0, ORIGIN, A.ORIGIN_BONE), (1, INSERTION, A.INSERTION_BONE)):
+        if not (ends == code).any():
+            continue
+        given = V.field(block, array)
+        if given is not None:
+            problem = unknown_bone_problem(where, end, str(given), bone_names)
+            if problem:
+                raise MuscleMSSError(problem)
+            bone = bone_names.index(given)
+        else:
+            bone = nearest_bone(rest[ends == code], bone_surfaces, labels)[0]
+        out[ends == code] = bone
+        names[array] = bone_names[bone]
+    return out, names
 
 
 def _tree_stamp(data):
@@ -56,9 +86,13 @@ class RigidPoseTransform(MuscleFilter):
             "clamped with a warning outside the table's range) and moves every particle of the "
             "mass-spring model and every vertex of the rest muscle surfaces by a blend of the "
             "transforms of its nearest bones, weighted by the rest-pose distance to the bone "
-            "surfaces. Advertises the motion's times as the pipeline's time steps. Adds the "
-            "point array bone_weights (one column per bone, in bones.vtm order) and the field "
-            "data bone_names.")
+            "surfaces. The fixed end particles of each fibre follow their attachment bone "
+            "rigidly instead: the origin_bone / insertion_bone field data of the fibres.vtm block "
+            "(carried by Fibre Resampler and Spring Builder) or, where absent, the bone nearest "
+            "on average to that end of the muscle. Advertises the motion's times as the "
+            "pipeline's time steps. Adds the point array bone_weights (one column per bone, in "
+            "bones.vtm order; one-hot for attached particles) and the field data bone_names, "
+            "origin_bone and insertion_bone.")
     INPUTS = (
         Port("Model", "vtkMultiBlockDataSet",
              "The mass-spring model in the rest pose, one block per muscle (Spring Builder)."),
@@ -171,13 +205,28 @@ class RigidPoseTransform(MuscleFilter):
         self.progress(0.1)
         ends = np.cumsum([len(r) for r in every], dtype=np.int64)
         ranges = list(zip(np.concatenate([[0], ends[:-1]]), ends))
+        bone_names = [name for name, _ in bone_items]
+        attached, ends = [], []
+        for (name, block), rest in zip(model_items, model_rest):
+            bones_of, names = _attached_bones(block, rest, bone_names, bone_surfaces, labels,
+                                              f"Model block '{name}'")
+            attached.append(bones_of)
+            ends.append(names)
+        # Surface vertices are never attached: they follow the blend.
+        attached = np.concatenate(attached + [np.full(sum(map(len, surface_rest)), -1)])
         # All blocks in one array: one parallel kernel launch for the weights and, per time,
         # for the blend (a launch per block costs more than the blend of a block).
+        weights = bone_weights(points, bone_surfaces, self.value("BonesPerPoint"),
+                               self.value("FallOff"), labels)
+        rows = np.flatnonzero(attached >= 0)
+        weights[rows] = 0.0
+        weights[rows, attached[rows]] = 1.0
         self._rest = {
             "bones": [v for v, _ in bone_surfaces],
             "points": points,
-            "weights": bone_weights(points, bone_surfaces, self.value("BonesPerPoint"),
-                                    self.value("FallOff"), labels),
+            "weights": weights,
+            "attached": {b: np.flatnonzero(attached == b) for b in np.unique(attached[rows])},
+            "ends": ends,
             "model": ranges[:len(model_rest)],
             "surfaces": ranges[len(model_rest):],
         }
@@ -205,6 +254,9 @@ class RigidPoseTransform(MuscleFilter):
         rest = self._rest_pose(model, bones, surfaces, model_items, bone_items, surface_items)
         self.progress(0.6)
         posed_points = blend(rest["points"], rest["weights"], matrices, self.choice("Blending"))
+        # Attached particles sit exactly where their bone's transform puts them.
+        for b, rows in rest["attached"].items():
+            posed_points[rows] = transform_rigid(rest["points"][rows], matrices[b])
 
         def posed(items, ranges):
             out = []
@@ -215,7 +267,11 @@ class RigidPoseTransform(MuscleFilter):
                 out.append((name, moved))
             return out
 
-        V.fill_multiblock(outputs[0], posed(model_items, rest["model"]))
+        model_out = posed(model_items, rest["model"])
+        for (_, moved), ends in zip(model_out, rest["ends"]):
+            for array, bone in ends.items():
+                V.set_field(moved, array, bone)
+        V.fill_multiblock(outputs[0], model_out)
         V.fill_multiblock(outputs[1], [
             (name, V.with_points(block, transform_rigid(points, matrices[b])))
             for b, ((name, block), points) in enumerate(zip(bone_items, rest["bones"]))])

@@ -17,6 +17,7 @@ from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutput
 from vtkmodules.vtkIOXML import (vtkXMLMultiBlockDataReader, vtkXMLMultiBlockDataWriter,
                                  vtkXMLPolyDataReader)
 
+from muscle_mss.core.attachments import attachment_problems
 from muscle_mss.core.errors import MuscleMSSError, first_problem
 from muscle_mss.core.motion import motion_problems, motion_rows
 from muscle_mss.core.scene import (BONES_FILE, FIBRES_FILE, MOTION_COLUMNS, MOTION_FILE,
@@ -43,6 +44,10 @@ def fibres_to_vtk(fibres: dict):
                              line_connectivity=np.arange(len(fs.points)))
         if fs.grid is not None:
             V.set_cell_array(pd, A.FIBRE_GRID, np.asarray(fs.grid, dtype=np.int32))
+        for array, bone in ((A.ORIGIN_BONE, fs.origin_bone),
+                            (A.INSERTION_BONE, fs.insertion_bone)):
+            if bone is not None:
+                V.set_field(pd, array, bone)
         items.append((name, pd))
     return V.make_multiblock(items)
 
@@ -241,6 +246,15 @@ def surfaces_from_vtk(multiblock, filename) -> dict:
     return out
 
 
+def _attachment_name(block, array: str, where: str):
+    """The bone named by the optional string field data ``array`` of a fibres block, or None."""
+    value = V.field(block, array)
+    if value is not None and not isinstance(value, str):
+        raise MuscleMSSError(f"{where}: field data '{array}' must be one string, the name of a "
+                             f"bone of {BONES_FILE}")
+    return value
+
+
 def fibres_from_vtk(multiblock, filename=FIBRES_FILE) -> dict:
     """``{name: FibreSet}`` of a multiblock of fibre polylines."""
     out = {}
@@ -251,7 +265,9 @@ def fibres_from_vtk(multiblock, filename=FIBRES_FILE) -> dict:
         grid = V.cell_array(block, A.FIBRE_GRID, where, required=False)
         if grid is not None:
             grid = np.asarray(grid).reshape(len(offsets) - 1, -1).astype(np.int32)
-        out[name] = FibreSet(points[connectivity], offsets, grid)
+        out[name] = FibreSet(points[connectivity], offsets, grid,
+                             _attachment_name(block, A.ORIGIN_BONE, where),
+                             _attachment_name(block, A.INSERTION_BONE, where))
     return out
 
 
@@ -290,7 +306,7 @@ def check_scene(folder):
         rows = motion_rows_from_table(table)
     except MuscleMSSError as err:
         return None, [str(err)]
-    problems = scene_problems(scene, rows=rows)
+    problems = scene_problems(scene, rows=rows) + attachment_problems(scene)
     if problems:
         return None, problems
     scene.motion = motion_problems(*rows, known_bones=list(scene.bones))[0]

@@ -9,17 +9,14 @@ import importlib.util
 
 import numpy as np
 import pytest
-from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkIdTypeArray, vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
-from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
-from vtkmodules.vtkFiltersModeling import vtkSelectEnclosedPoints
 
 from muscle_mss.core import demo_scene as demo
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.motion import rigid_problem
+from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.volume import signed_volume
+from surface_probes import (assert_closed_and_outward, assert_identical_scenes, gap as _gap,
+                            inside as _inside, signed_distance as _signed_distance)
 
 # Muscles that lie on the femur along their belly: the vasti, the short head of biceps and
 # adductor magnus.
@@ -39,65 +36,6 @@ def full():
 @pytest.fixture(scope="module")
 def small():
     return demo.demo_scene("small")
-
-
-def _polydata(points, triangles):
-    pd = vtkPolyData()
-    vtk_points = vtkPoints()
-    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64), deep=True))
-    pd.SetPoints(vtk_points)
-    tri = np.asarray(triangles, dtype=np.int64)
-    cells = vtkCellArray()
-    id_type = vtkIdTypeArray().GetDataType()
-    cells.SetData(numpy_to_vtk(np.arange(0, 3 * len(tri) + 1, 3, dtype=np.int64), deep=True,
-                               array_type=id_type),
-                  numpy_to_vtk(tri.reshape(-1).copy(), deep=True, array_type=id_type))
-    pd.SetPolys(cells)
-    return pd
-
-
-def _inside(surface, points):
-    """Which ``points`` (n, 3) vtkSelectEnclosedPoints finds inside the closed ``surface``."""
-    select = vtkSelectEnclosedPoints()
-    select.SetSurfaceData(_polydata(surface.points, surface.triangles))
-    probe = vtkPolyData()
-    vtk_points = vtkPoints()
-    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64), deep=True))
-    probe.SetPoints(vtk_points)
-    select.SetInputData(probe)
-    select.SetTolerance(1e-6)
-    select.Update()
-    return vtk_to_numpy(select.GetOutput().GetPointData().GetArray("SelectedPoints")) == 1
-
-
-_DISTANCES = {}
-
-
-def _signed_distance(surface, points):
-    """Signed distance (mm) of ``points`` (n, 3) to ``surface``: negative inside."""
-    key = id(surface)
-    if key not in _DISTANCES:
-        # Building the locator is the slow part: once per surface (the scenes live all module).
-        _DISTANCES[key] = (surface, vtkImplicitPolyDataDistance())
-        _DISTANCES[key][1].SetInput(_polydata(surface.points, surface.triangles))
-    distance = _DISTANCES[key][1]
-    values = vtkDoubleArray()
-    distance.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
-                                        deep=True), values)
-    return vtk_to_numpy(values).copy()
-
-
-def _gap(a, b):
-    """Smallest distance (mm) between two closed surfaces, negative where they overlap;
-    inf when their bounding boxes are more than 10 mm apart."""
-    lo = np.maximum(a.points.min(axis=0), b.points.min(axis=0)) - 10.0
-    hi = np.minimum(a.points.max(axis=0), b.points.max(axis=0)) + 10.0
-    gaps = [np.inf]
-    for one, other in ((a, b), (b, a)):
-        near = one.points[((one.points > lo) & (one.points < hi)).all(axis=1)]
-        if len(near):
-            gaps.append(_signed_distance(other, near).min())
-    return min(gaps)
 
 
 # ---- structure -----------------------------------------------------------------------------
@@ -137,18 +75,7 @@ def test_unknown_size_is_refused():
 
 
 def test_demo_scene_is_deterministic(small):
-    again = demo.demo_scene("small")
-    for group in ("muscles", "bones"):
-        for name, surface in getattr(small, group).items():
-            other = getattr(again, group)[name]
-            assert np.array_equal(surface.points, other.points), name
-            assert np.array_equal(surface.triangles, other.triangles), name
-    for name, fibres in small.fibres.items():
-        assert np.array_equal(fibres.points, again.fibres[name].points)
-        assert np.array_equal(fibres.offsets, again.fibres[name].offsets)
-        assert np.array_equal(fibres.grid, again.fibres[name].grid)
-    assert np.array_equal(small.motion.matrices, again.motion.matrices)
-    assert np.array_equal(small.motion.times, again.motion.times)
+    assert_identical_scenes(small, demo.demo_scene("small"))
 
 
 # ---- surfaces ------------------------------------------------------------------------------
@@ -156,10 +83,7 @@ def test_demo_scene_is_deterministic(small):
 @pytest.mark.parametrize("size", ["full", "small"])
 def test_every_surface_is_closed_manifold_and_outward(size, full, small):
     scene = full if size == "full" else small
-    for name, surface in list(scene.bones.items()) + list(scene.muscles.items()):
-        assert surface.points.dtype == np.float64 and surface.triangles.dtype == np.int64
-        assert surface_problems(surface.points, surface.triangles) == [], name
-        assert signed_volume(surface.points, surface.triangles) > 0.0, name
+    assert_closed_and_outward(scene)
 
 
 def test_bones_are_shaped_like_bones(full):

@@ -175,15 +175,19 @@ def test_posed_model_keeps_every_array_and_adds_the_weights():
     d = np.stack([np.linalg.norm(np.maximum(np.abs(V.points_of(rest) - centre) - half, 0), axis=1)
                   for half, centre in (((8, 8, 40), (0, 0, 45)), ((7, 7, 40), (0, 0, -45)))], 1)
     closeness = np.exp(-d / 5.0)
-    np.testing.assert_allclose(weights, closeness / closeness.sum(axis=1, keepdims=True),
-                               atol=1e-12)
+    expected = closeness / closeness.sum(axis=1, keepdims=True)
     z = V.points_of(rest)[:, 2]
-    # The fixed ends move with their bones: the top ones stay, the bottom ones turn with the tibia.
+    # The fixed ends follow one bone each: the model names none, so the nearest, femur on top.
+    fixed = V.point_array(rest, A.FIXED) == 1
+    expected[fixed] = np.eye(2)[np.where(z[fixed] > 0.0, 0, 1)]
+    np.testing.assert_allclose(weights, expected, atol=1e-12)
+    assert (V.field(posed, A.ORIGIN_BONE), V.field(posed, A.INSERTION_BONE)) == ("tibia", "femur")
+    # ... rigidly: the top ones stay, the bottom ones turn with the tibia.
     posed_points = V.points_of(posed)
     top, bottom = z == 60.0, z == -60.0
-    np.testing.assert_allclose(posed_points[top], V.points_of(rest)[top], atol=0.05)
+    np.testing.assert_allclose(posed_points[top], V.points_of(rest)[top], atol=1e-9)
     moved = V.points_of(rest)[bottom] @ knee(90.0)[:, :3].T
-    np.testing.assert_allclose(posed_points[bottom], moved, atol=0.05)
+    np.testing.assert_allclose(posed_points[bottom], moved, atol=1e-9)
     (_, surface), = V.blocks(f.GetOutputDataObject(2))
     assert V.points_of(surface).shape == (8, 3)
     assert V.point_array(surface, A.BONE_WEIGHTS).shape == (8, 2)

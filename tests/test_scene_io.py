@@ -140,7 +140,7 @@ def test_each_rule_has_exactly_its_error(small_scene, tmp_path, breaker, where, 
 
 def test_validate_ok_prints_counts(small_scene, small_scene_dir, capsys):
     assert main(["validate", str(small_scene_dir)]) == 0
-    out = capsys.readouterr().out.strip()
+    out = capsys.readouterr().out.strip().splitlines()[0]
     fibres = sum(fs.count for fs in small_scene.fibres.values())
     assert out == (f"ok: {len(small_scene.muscles)} muscles, {len(small_scene.bones)} bones, "
                    f"{fibres} fibres, {len(small_scene.motion.times)} time points")

@@ -1,0 +1,100 @@
+"""Which bone each end of a muscle is attached to (DESIGN §6 "Attachments", issue 12).
+
+A muscle's fibres run from its origin to its insertion; the fixed particles at the fibres' ends
+are the tendon attachments and follow their bone rigidly, not a blend of nearby bones. A scene
+names the two bones in optional field data of each ``fibres.vtm`` block (``origin_bone``,
+``insertion_bone``); when a name is absent it is inferred here as the bone whose rest surface is
+nearest, on average over the muscle's fibres, to that end's points.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .pose import bone_distances
+from .scene import BONES_FILE, FIBRES_FILE, Scene
+
+ORIGIN, INSERTION = "origin", "insertion"
+"""The two ends of a muscle: fibre index 0 and the last fibre index."""
+
+
+@dataclass(frozen=True)
+class Attachment:
+    """One end of one muscle: its bone, whether the scene named it or it was inferred, and the
+    mean distance (mm) of the end's fibre points to that bone's rest surface."""
+
+    bone: str
+    inferred: bool
+    mean_distance: float
+
+
+def nearest_bone(end_points, bones, labels=None):
+    """``(bone index, mean distance mm)``: the bone whose rest surface is nearest on average to
+    the end points (n, 3) mm of one muscle end; ``bones`` as in :func:`.pose.bone_distances`."""
+    mean = bone_distances(end_points, bones, labels).mean(axis=0)
+    b = int(np.argmin(mean))
+    return b, float(mean[b])
+
+
+def fibre_ends(fibres):
+    """``(origins (F, 3), insertions (F, 3))``: the first and last point of every fibre, mm."""
+    return fibres.points[fibres.offsets[:-1]], fibres.points[fibres.offsets[1:] - 1]
+
+
+def unknown_bone_problem(where: str, end: str, bone: str, bone_names) -> str | None:
+    """The message for an attachment naming a bone that is not in ``bone_names``, or None."""
+    if bone in bone_names:
+        return None
+    return (f"{where}: {end}_bone '{bone}' is not a bone of {BONES_FILE} (its blocks: "
+            f"{', '.join(bone_names)}); name one of them or leave {end}_bone out to infer it")
+
+
+def attachment_problems(scene: Scene) -> list:
+    """One sentence per attachment bone a ``fibres.vtm`` block names that is not a bone."""
+    problems = []
+    for name, fibres in scene.fibres.items():
+        for end, bone in ((ORIGIN, fibres.origin_bone), (INSERTION, fibres.insertion_bone)):
+            if bone is not None:
+                problem = unknown_bone_problem(f"{FIBRES_FILE} block '{name}'", end, bone,
+                                               list(scene.bones))
+                if problem:
+                    problems.append(problem)
+    return problems
+
+
+def scene_attachments(scene: Scene) -> dict:
+    """``{muscle: {"origin": Attachment, "insertion": Attachment}}`` of a checked scene: the
+    bones it names, the nearest bones where it names none."""
+    names = list(scene.bones)
+    surfaces = [(scene.bones[b].points, scene.bones[b].triangles) for b in names]
+    labels = [f"{BONES_FILE} block '{b}'" for b in names]
+    out = {}
+    for muscle, fibres in scene.fibres.items():
+        out[muscle] = {}
+        for end, given, points in zip((ORIGIN, INSERTION),
+                                      (fibres.origin_bone, fibres.insertion_bone),
+                                      fibre_ends(fibres)):
+            if given is not None:
+                g = names.index(given)
+                d = bone_distances(points, [surfaces[g]], [labels[g]])
+                out[muscle][end] = Attachment(given, False, float(d.mean()))
+            else:
+                b, distance = nearest_bone(points, surfaces, labels)
+                out[muscle][end] = Attachment(names[b], True, distance)
+    return out
+
+
+def fixed_particle_bones(fibre_id, fibre_index, fixed, origin: int, insertion: int) -> np.ndarray:
+    """Attachment bone index of every particle (n,) int64: ``origin`` for fixed particles at
+    fibre index 0, ``insertion`` for fixed particles at their fibre's last index, -1 for the
+    others (free particles, and fixed ones inside a fibre)."""
+    fibre_id = np.asarray(fibre_id, dtype=np.int64)
+    fibre_index = np.asarray(fibre_index, dtype=np.int64)
+    last = np.zeros(fibre_id.max() + 1 if len(fibre_id) else 0, dtype=np.int64)
+    np.maximum.at(last, fibre_id, fibre_index)
+    out = np.full(len(fibre_id), -1, dtype=np.int64)
+    fixed = np.asarray(fixed) != 0
+    out[fixed & (fibre_index == 0)] = origin
+    out[fixed & (fibre_index == last[fibre_id]) & (fibre_index > 0)] = insertion
+    return out
