@@ -7,7 +7,8 @@ from test_collisions import icosphere_like
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.penetration import max_penetration_pairs, max_penetration_per_object
-from muscle_mss.filters import bone_sets, motion_run
+from muscle_mss.core.mesh_checks import surface_problems
+from muscle_mss.filters import bone_sets, check_cache, motion_run
 from muscle_mss.filters.cli import main, timings_note
 
 SPACING = 3.0
@@ -28,8 +29,10 @@ def rotation(seed):
 @pytest.fixture(autouse=True)
 def empty_cache():
     bone_sets.clear_bone_cache()
+    check_cache.clear_check_cache()
     yield
     bone_sets.clear_bone_cache()
+    check_cache.clear_check_cache()
 
 
 def test_same_bone_is_sampled_once_and_gives_the_same_spheres():
@@ -87,6 +90,22 @@ def test_cache_off_samples_every_time_and_bad_bones_still_refused():
         bone_sets.cached_bone_spheres(bad, triangles, SPACING, where="femur")
 
 
+def test_rest_surface_checked_once_per_content():
+    points, triangles = bone()
+    assert check_cache.rest_surface_problems(points, triangles) == []
+    assert check_cache.rest_surface_problems(points.copy(), triangles) == []
+    assert check_cache.check_counts == {"checked": 1, "reused": 1}
+    flipped = triangles[:, ::-1]
+    want = surface_problems(points, flipped)
+    assert want and check_cache.rest_surface_problems(points, flipped) == want
+    moved = points.copy()
+    moved[0, 0] += 1e-9
+    check_cache.rest_surface_problems(moved, triangles)
+    assert check_cache.check_counts == {"checked": 3, "reused": 1}
+    assert check_cache.rest_surface_problems(points, flipped) == want
+    assert check_cache.check_counts == {"checked": 3, "reused": 2}
+
+
 def test_rigid_fit_recovers_a_known_motion():
     points, _ = bone()
     r, t = rotation(11), np.array([1.0, 2.0, 3.0])
@@ -97,7 +116,7 @@ def test_rigid_fit_recovers_a_known_motion():
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_penetration_over_pairs_equals_the_reference_bitwise(seed):
+def test_penetration_sweep_equals_the_reference_bitwise(seed):
     rng = np.random.default_rng(seed)
     n, k = 400, 120
     centres = rng.uniform(0, 30, (n, 3))
@@ -163,10 +182,13 @@ def test_every_compressor_reads_back_the_same_series_and_caches_repeat_bitwise(
             for n in want:
                 np.testing.assert_array_equal(back[n], want[n])
     # the second solve of the same time point uses the cached bone spheres: same rows
-    before = dict(bone_sets.cache_counts)
+    before, checks = dict(bone_sets.cache_counts), dict(check_cache.check_counts)
     pipeline.solver.Modified()
+    pipeline.probe.Modified()
     again = motion_run.solve_time_point(pipeline, 2)
     assert bone_sets.cache_counts["sampled"] == before["sampled"]
     assert bone_sets.cache_counts["reused"] > before["reused"]
+    assert check_cache.check_counts["checked"] == checks["checked"] > 0
+    assert check_cache.check_counts["reused"] > checks["reused"]
     strip = [{k: v for k, v in r.items() if k != "seconds"} for r in result.rows]
     assert strip == [{k: v for k, v in r.items() if k != "seconds"} for r in again.rows]
