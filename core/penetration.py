@@ -7,6 +7,7 @@ measures how far a solve is from that. It measures spheres, not the surface the 
 surface vertices in bones are reported by the MVC Surface Deformer.
 """
 import numpy as np
+from numba import njit, prange
 from scipy.spatial import cKDTree
 
 
@@ -49,3 +50,74 @@ def max_penetration_per_object(centres, radii, owner, n_objects, bone_centres=No
     depth = radii[i] + radii_all[j] - np.linalg.norm(centres[i] - centres_all[j], axis=1)
     np.maximum.at(deepest, owner[i], np.maximum(depth, 0.0))
     return deepest
+
+
+
+def max_penetration_pairs(centres, radii, owner, n_objects, bone_centres=None,
+                          bone_radii=None, fixed=None) -> np.ndarray:
+    """:func:`max_penetration_per_object` as a Numba sweep instead of Python lists per sphere
+    (issue 15 measured the reference's generator over ~0.4 M pairs at 0.2 s per time point).
+    All spheres are sorted along the axis of largest extent; each muscle sphere scans the ones
+    within its radius plus the largest radius along that axis. Same arguments and the same
+    result, bitwise (the same depth formula over a superset of the reference's pairs, the extra
+    ones farther apart than their radii); :func:`max_penetration_per_object` stays as its slow
+    reference."""
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    owner = np.asarray(owner, dtype=np.int64).reshape(-1)
+    free = np.ones(len(centres), bool) if fixed is None else ~np.asarray(fixed, bool).reshape(-1)
+    if bone_centres is not None and len(bone_centres):
+        centres_all = np.concatenate([centres, np.asarray(bone_centres, dtype=np.float64)])
+        radii_all = np.concatenate([radii, np.asarray(bone_radii, dtype=np.float64)])
+        owner_all = np.concatenate([owner, np.full(len(bone_centres), -1)])
+        free_all = np.concatenate([free, np.zeros(len(bone_centres), bool)])
+    else:
+        centres_all, radii_all, owner_all, free_all = centres, radii, owner, free
+    deepest = np.zeros(n_objects)
+    if len(centres) == 0:
+        return deepest
+    axis = int(np.argmax(np.ptp(centres_all, axis=0)))
+    order = np.argsort(centres_all[:, axis], kind="stable")
+    per_sphere = np.empty(len(centres))
+    _deepest_per_sphere(centres, radii, owner, free, centres_all[order], radii_all[order],
+                        owner_all[order], free_all[order], axis, radii_all.max(), per_sphere)
+    np.maximum.at(deepest, owner, per_sphere)
+    return deepest
+
+
+@njit(cache=True, inline="always")
+def _first_at_least(keys, value):
+    """Index of the first of the sorted ``keys`` that is >= ``value`` (len(keys) if none)."""
+    low, high = 0, len(keys)
+    while low < high:
+        middle = (low + high) // 2
+        if keys[middle] < value:
+            low = middle + 1
+        else:
+            high = middle
+    return low
+
+
+@njit(cache=True, parallel=True)
+def _deepest_per_sphere(centres, radii, owner, free, sorted_centres, sorted_radii,
+                        sorted_owner, sorted_free, axis, largest, out):
+    """``out[i]``: deepest overlap (mm, >= 0) of muscle sphere ``i`` with the spheres
+    ``sorted_*`` (all spheres sorted along ``axis``) of other objects, pairs with a free sphere
+    only; scans the sorted spheres within ``radii[i] + largest`` along ``axis``."""
+    keys = sorted_centres[:, axis].copy()
+    for i in prange(len(centres)):
+        reach = radii[i] + largest
+        first = _first_at_least(keys, centres[i, axis] - reach)
+        best = 0.0
+        for s in range(first, len(keys)):
+            if keys[s] > centres[i, axis] + reach:
+                break
+            if sorted_owner[s] == owner[i] or not (free[i] or sorted_free[s]):
+                continue
+            dx = centres[i, 0] - sorted_centres[s, 0]
+            dy = centres[i, 1] - sorted_centres[s, 1]
+            dz = centres[i, 2] - sorted_centres[s, 2]
+            depth = radii[i] + sorted_radii[s] - np.sqrt(dx * dx + dy * dy + dz * dz)
+            if depth > best:
+                best = depth
+        out[i] = best

@@ -132,30 +132,44 @@ def _deepest(rows, column) -> str:
     return f"{max(values):.3f}" if values else "-"
 
 
-def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene) -> list:
+def timings_note(timings: dict) -> str:
+    """``solve 1.20 + surface 0.10 + write 0.05 s``: one time point's seconds by part (those of
+    :attr:`motion_run.TimePointResult.timings` that were measured)."""
+    parts = [f"{name} {timings[name]:.2f}" for name in ("solve", "surface", "write")
+             if name in timings]
+    return f"({' + '.join(parts)} s)" if parts else ""
+
+
+def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
+                   writing: dict | None = None) -> list:
     """Run a whole motion with a progress bar; write summary, series index and pictures; print
-    the summary table. Returns the summary rows."""
+    the summary table. ``writing`` may give ``series`` (names to write) and ``compressor``
+    (see :func:`motion_run.write_time_point`). Returns the summary rows."""
     from . import motion_run
     from .pictures import convergence_picture, poses_picture
 
+    writing = writing or {}
     start = wallclock.perf_counter()
     compile_kernels()
     bar = {}
 
     def on_step(result, done, total):
         bar.setdefault("bar", ProgressBar(total, "solving"))
-        bar["bar"].update(done, f"t={result.time:.3f} s")
+        bar["bar"].update(done, f"t={result.time:.3f} s {timings_note(result.timings)}")
 
-    pipeline, rows = motion_run.run_motion(scene_folder, out, settings, on_step=on_step)
+    series_names = writing.get("series", motion_run.SERIES)
+    compressor = writing.get("compressor", "lz4")
+    pipeline, rows = motion_run.run_motion(scene_folder, out, settings, on_step=on_step,
+                                           series_names=series_names, compressor=compressor)
     motion_run.write_summary(out, rows)
-    motion_run.write_index(out, pipeline.times)
+    motion_run.write_index(out, pipeline.times, series_names=series_names)
     index = farthest_pose_index(scene.motion)
     convergence_picture(os.path.join(out, "convergence", f"convergence_{index:04d}.csv"),
                         os.path.join(out, "convergence.png"),
                         title=f"convergence at t = {pipeline.times[index]:.3f} s")
     poses_picture(pipeline, index, os.path.join(out, "poses.png"))
     print(summary_table(rows))
-    print(f"wrote {out}: surfaces.pvd, fibres.pvd, particles.pvd, summary.csv, "
+    print(f"wrote {out}: {', '.join(n + '.pvd' for n in series_names)}, summary.csv, "
           f"convergence.png, poses.png in {wallclock.perf_counter() - start:.0f} s")
     return rows
 
@@ -168,32 +182,34 @@ def compile_kernels() -> None:
 
 def cmd_demo(args) -> int:
     from .motion_run import check_output_folder
+    writing = writing_from(args)
     if check_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
         print(f"replacing the results of the previous run in {args.out}")
     scene_folder = os.path.join(args.out, "scene")
     scene = write_demo_scene(scene_folder, args.size, args.region)
     print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> {scene_folder}")
-    run_and_report(scene_folder, args.out, settings_from(args), scene)
+    run_and_report(scene_folder, args.out, settings_from(args), scene, writing)
     return 0
 
 
 def cmd_run(args) -> int:
     from . import motion_run
     from .scene_io import load_scene
+    writing = writing_from(args)
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
     if motion_run.check_output_folder(args.out, args.overwrite):
         print(f"replacing the previous run in {args.out}")
     if args.time is None:
-        run_and_report(args.scene, args.out, settings_from(args), scene)
+        run_and_report(args.scene, args.out, settings_from(args), scene, writing)
         return 0
     compile_kernels()
     pipeline = motion_run.build_pipeline(args.scene, settings_from(args))
     index = time_point_index(pipeline.times, args.time)
     result = motion_run.solve_time_point(pipeline, index)
-    motion_run.write_time_point(result, args.out)
+    motion_run.write_time_point(result, args.out, writing["series"], writing["compressor"])
     motion_run.write_summary(args.out, result.rows)
-    motion_run.write_index(args.out, [result.time], [result.index])
+    motion_run.write_index(args.out, [result.time], [result.index], writing["series"])
     print(summary_table(result.rows))
     return 0
 
@@ -220,11 +236,22 @@ def settings_from(args) -> dict:
     return {name: value for name, value in pairs if value is not None}
 
 
+def writing_from(args) -> dict:
+    """What to write and how, from ``--write`` and ``--compressor``."""
+    from .motion_run import SERIES, parse_write_option
+    return {"series": parse_write_option(args.write or ",".join(SERIES)),
+            "compressor": args.compressor}
+
+
 def _add_run_options(p):
     p.add_argument("--resolution", type=int, help="particles per fibre N (default 20)")
     p.add_argument("--layout", choices=("lattice-6", "lattice-26", "Delaunay", "k-NN"),
                    help="spring layout (default lattice-26)")
     p.add_argument("--iterations", type=int, help="solver iterations per time point (default 500)")
+    p.add_argument("--write",
+                   help="series to write, comma-separated: surfaces,fibres,particles (default all)")
+    p.add_argument("--compressor", choices=("lz4", "zlib", "none"), default="lz4",
+                   help="compressor of the series' binary data (default lz4: fast)")
     add_method_options(p)
 
 

@@ -51,6 +51,9 @@ SERIES = ("surfaces", "fibres", "particles")
 RUN_FILES = ("summary.csv", "surfaces.pvd", "fibres.pvd", "particles.pvd", "convergence.png",
              "poses.png", "series", "convergence")
 """What a run writes in its output folder (files and folders): another run's results."""
+COMPRESSORS = ("lz4", "zlib", "none")
+"""Compressors of the series' appended binary data: LZ4 (default: fast, readable by ParaView
+5.x), ZLib (smaller, slower: VTK's own default) or none (fastest, largest)."""
 
 
 @dataclass
@@ -139,22 +142,27 @@ class TimePointResult:
     particles: object
     convergence: dict
     seconds: float
+    timings: dict = field(default_factory=dict)
+    """Seconds of this time point's parts: ``solve`` (pose and collision solver), ``surface``
+    (MVC deformation and volume probe), ``statistics`` (summary rows) and, once written,
+    ``write``."""
 
 
 def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     """Run the pipeline at time point ``index`` and collect its outputs and summary rows."""
-    from muscle_mss.core.penetration import max_penetration_per_object
+    from muscle_mss.core.penetration import max_penetration_pairs
     from .bone_sets import bone_sphere_set
     t = p.times[index]
     start = wallclock.perf_counter()
-    surfaces = _copy(update_at(p.probe, 0, t))
-    table = V.table_columns(update_at(p.probe, 1, t))
-    fibres = _copy(update_at(p.deformer, 1, t))
     particles = _copy(update_at(p.solver, 0, t))
     convergence_table = update_at(p.solver, 1, t)
     convergence = V.table_columns(convergence_table)
     converged = int(V.field(convergence_table, A.CONVERGED, 0))
     bones = update_at(p.pose, 1, t)
+    solved = wallclock.perf_counter()
+    surfaces = _copy(update_at(p.probe, 0, t))
+    table = V.table_columns(update_at(p.probe, 1, t))
+    fibres = _copy(update_at(p.deformer, 1, t))
     seconds = wallclock.perf_counter() - start
 
     names = [n for n, _ in V.blocks(particles, "solved model")]
@@ -167,7 +175,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
         owner.append(np.full(sphere.sum(), k))
         fixed.append(V.point_array(block, A.FIXED).astype(bool)[sphere])
     bone_centres, bone_radii, _ = bone_sphere_set(bones, p.solver.value("BoneSphereSpacing"), "posed bones")
-    penetration = max_penetration_per_object(
+    penetration = max_penetration_pairs(
         np.concatenate(centres), np.concatenate(radii), np.concatenate(owner), len(names),
         bone_centres, bone_radii, np.concatenate(fixed))
     in_bone = free_particles_in_bones(p, particles, bones)
@@ -194,7 +202,10 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             "free_particle_new_in_bone_depth_mm": in_bone[name][3],
             "iterations": iterations, "converged": converged, "seconds": seconds,
         })
-    return TimePointResult(index, t, rows, surfaces, fibres, particles, convergence, seconds)
+    timings = {"solve": solved - start, "surface": start + seconds - solved,
+               "statistics": wallclock.perf_counter() - start - seconds}
+    return TimePointResult(index, t, rows, surfaces, fibres, particles, convergence, seconds,
+                           timings)
 
 
 def free_particles_in_bones(p: Pipeline, particles, posed_bones) -> dict:
@@ -270,13 +281,18 @@ def check_output_folder(out: str, overwrite: bool = False) -> list:
     return found
 
 
-def write_time_point(result: TimePointResult, out: str) -> None:
-    """Write one time point's series files and convergence table under ``out``.
+def write_time_point(result: TimePointResult, out: str, series_names=SERIES,
+                     compressor: str = "lz4") -> None:
+    """Write one time point's series files (those of ``series_names``, a subset of
+    :data:`SERIES`) and convergence table under ``out``; the series as appended raw binary
+    compressed with ``compressor`` (one of :data:`COMPRESSORS`). Adds the seconds taken to
+    ``result.timings["write"]``.
 
     Each ``.vtm`` is written with its ``.vtp`` files into a private folder first, checked (the
     writer succeeded and every file the ``.vtm`` names exists), then renamed into ``series/``:
     a failed write raises :class:`MuscleMSSError` and never leaves a ``.vtm`` pointing at
     missing files."""
+    start = wallclock.perf_counter()
     series = os.path.join(out, "series")
     try:
         os.makedirs(series, exist_ok=True)
@@ -286,11 +302,14 @@ def write_time_point(result: TimePointResult, out: str) -> None:
         raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
     try:
         for name, data in zip(SERIES, (result.surfaces, result.fibres, result.particles)):
+            if name not in series_names:
+                continue
             final = os.path.join(out, series_file(name, result.index))
             staged = os.path.join(staging, os.path.basename(final))
             writer = vtkXMLMultiBlockDataWriter()
             writer.SetFileName(staged)
             writer.SetInputData(data)
+            configure_writer(writer, compressor)
             _check_written(staged, final, writer.Write() == 1 and writer.GetErrorCode() == 0)
             _move_into_place(staged, final)
     except OSError as err:
@@ -299,6 +318,26 @@ def write_time_point(result: TimePointResult, out: str) -> None:
         shutil.rmtree(staging, ignore_errors=True)
     write_csv(os.path.join(out, "convergence", f"convergence_{result.index:04d}.csv"),
               list(result.convergence), zip(*result.convergence.values()))
+    result.timings["write"] = wallclock.perf_counter() - start
+
+
+def configure_writer(writer, compressor: str) -> None:
+    """Appended raw binary (no base64) with ``compressor`` (one of :data:`COMPRESSORS`)."""
+    writer.SetDataModeToAppended()
+    writer.EncodeAppendedDataOff()
+    {"lz4": writer.SetCompressorTypeToLZ4, "zlib": writer.SetCompressorTypeToZLib,
+     "none": writer.SetCompressorTypeToNone}[compressor]()
+
+
+def parse_write_option(text: str) -> tuple:
+    """The series named by a ``--write`` option (``surfaces,fibres,particles`` or a part of it,
+    in any order), in :data:`SERIES` order; :class:`MuscleMSSError` naming an unknown one."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in SERIES]
+    if unknown or not names:
+        raise MuscleMSSError(f"--write {text!r}: {', '.join(unknown) or 'nothing'} is not a "
+                             f"series; give one or more of {','.join(SERIES)}")
+    return tuple(n for n in SERIES if n in names)
 
 
 def _check_written(vtm: str, final: str, writer_ok: bool) -> None:
@@ -359,11 +398,11 @@ def _csv_value(v):
     return v
 
 
-def write_index(out: str, times, indices=None) -> None:
-    """Write the ``.pvd`` index of each series for time points ``indices`` (default
-    ``0..len(times)-1``) at ``times``."""
+def write_index(out: str, times, indices=None, series_names=SERIES) -> None:
+    """Write the ``.pvd`` index of each series of ``series_names`` for time points ``indices``
+    (default ``0..len(times)-1``) at ``times``."""
     indices = range(len(times)) if indices is None else indices
-    for name in SERIES:
+    for name in series_names:
         entries = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" '
                             f'file="{series_file(name, i)}"/>' for i, t in zip(indices, times))
         _write_atomically(os.path.join(out, f"{name}.pvd"), lambda f: f.write(
@@ -386,11 +425,14 @@ def time_block(count: int, k: int, parts: int) -> range:
     return range(first, first + size + (1 if k < extra else 0))
 
 
-def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None):
+def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
+               series_names=SERIES, compressor="lz4"):
     """Compute the time points of a scene's motion and write their files.
 
     ``part = (k, K)`` computes the k-th of K contiguous blocks of time points (MPI rank k of
     K), in time order; default all.
+
+    ``series_names`` and ``compressor``: what :func:`write_time_point` writes, and how.
 
     ``on_step(result, done, total)`` is called after each time point (progress bars). Returns the
     summary rows in time-point order; the caller writes ``summary.csv`` and the ``.pvd`` index
@@ -402,7 +444,7 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None):
     rows = []
     for done, index in enumerate(indices, start=1):
         result = solve_time_point(pipeline, index)
-        write_time_point(result, out)
+        write_time_point(result, out, series_names, compressor)
         rows += result.rows
         if on_step is not None:
             on_step(result, done, len(indices))

@@ -15,6 +15,7 @@ from muscle_mss.core.volume import signed_volume, volume_error
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
+from .check_cache import rest_surface_problems
 
 MEAN_ROW = "mean"
 """Name (``muscle`` column) of the table's last row."""
@@ -100,7 +101,7 @@ def _volumes(name, deformed, rest):
                                  "must be a triangle vtkPolyData")
     rest_points = V.points_of(rest)
     rest_triangles = V.triangles_of(rest, rest_where)
-    problems = surface_problems(rest_points, rest_triangles)
+    problems = rest_surface_problems(rest_points, rest_triangles)
     if problems:
         raise MuscleMSSError(f"{rest_where} {problems[0]}; a volume needs a closed, "
                              "outward-oriented surface")

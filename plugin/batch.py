@@ -34,6 +34,10 @@ def parse_args(argv):
                              "equilibrium")
     parser.add_argument("--tolerance", type=float,
                         help="quasi-static tolerance: largest particle move of a step, mm")
+    parser.add_argument("--write", default="surfaces,fibres,particles",
+                        help="series to write, comma-separated (default all three)")
+    parser.add_argument("--compressor", choices=("lz4", "zlib", "none"), default="lz4",
+                        help="compressor of the series' binary data (default lz4)")
     return parser.parse_args(argv)
 
 
@@ -66,6 +70,11 @@ def main(argv=None) -> int:
     # Rank 0 checks OUT (and clears an earlier run's results with --overwrite) before any
     # rank writes; all ranks stop if it refuses.
     failed = 0
+    try:
+        series_names = motion_run.parse_write_option(args.write)
+    except MuscleMSSError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
     if rank == 0:
         try:
             motion_run.check_output_folder(args.out, args.overwrite)
@@ -78,7 +87,7 @@ def main(argv=None) -> int:
     try:
         pipeline, rows = motion_run.run_motion(
             args.scene, args.out, settings_from(args),
-            part=(rank, size))
+            part=(rank, size), series_names=series_names, compressor=args.compressor)
         motion_run.write_csv(partial, motion_run.SUMMARY_COLUMNS,
                              ([r[c] for c in motion_run.SUMMARY_COLUMNS] for r in rows))
     except MuscleMSSError as err:
@@ -89,7 +98,7 @@ def main(argv=None) -> int:
         rows = _merge(args.out, size)
         times = sorted({float(r["time"]) for r in rows})
         motion_run.write_summary(args.out, rows)
-        motion_run.write_index(args.out, times)
+        motion_run.write_index(args.out, times, series_names=series_names)
         print(f"wrote {len(times)} time points x {len(rows) // max(len(times), 1)} muscles "
               f"to {args.out} on {size} rank{'s' if size > 1 else ''}")
     if controller is not None and size > 1:

@@ -1,0 +1,193 @@
+"""Benchmark of one time point of a motion run, part by part (issue 15).
+
+The full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations) is run through the
+CLI's pipeline (:mod:`muscle_mss.filters.motion_run`) at N = 20 and 80 particles per fibre. For
+each time point the pipeline is updated stage by stage and each stage timed: pose (Rigid Pose
+Transform), solver setup (the MSS Collision Solver's update less its iterations), iterations
+(the solver's iteration chunks), MVC (MVC Surface Deformer), statistics (Volume-Error Probe and
+the runner's summary rows: penetration, strain) and writing (the three series, appended raw
+LZ4, and the convergence table). The first time point (MVC weights, kernel loads, bone sphere
+sampling) is listed apart from the steady state (mean of the later ones). A second table times
+the two parts issue 15 replaced, on the last time point's data: bone spheres sampled afresh vs
+taken from the rigid-bone cache, and the penetration statistics' Python reference vs its Numba
+sweep; and the writing with VTK's default ZLib compressor vs LZ4. Writes
+benchmarks/results/time_point.md.
+
+    python benchmarks/bench_time_point.py [N ...] [--points K]    (default: 20 80, K = 4)
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from muscle_mss.core import penetration as P
+from muscle_mss.core import solver as S
+from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.filters import bone_sets, motion_run
+from muscle_mss.filters.motion_run import build_pipeline, update_at
+from muscle_mss.filters.scene_io import write_scene
+
+PARTS = ("pose", "solver setup", "iterations", "MVC", "statistics", "writing")
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+class ChunkClock:
+    """Seconds spent in the solver's iteration chunks (wraps ``solver._solve_chunk``)."""
+
+    def __init__(self):
+        self.seconds = 0.0
+        self.inner = S._solve_chunk
+
+    def __call__(self, *args):
+        start = time.perf_counter()
+        try:
+            return self.inner(*args)
+        finally:
+            self.seconds += time.perf_counter() - start
+
+
+def time_point_parts(pipeline, index, out, clock) -> dict:
+    """Seconds of each of :data:`PARTS` for time point ``index`` (stages updated in order)."""
+    t = pipeline.times[index]
+    seconds = {}
+    start = time.perf_counter()
+    update_at(pipeline.pose, 0, t)
+    update_at(pipeline.pose, 1, t)
+    seconds["pose"] = time.perf_counter() - start
+    clock.seconds = 0.0
+    start = time.perf_counter()
+    update_at(pipeline.solver, 0, t)
+    update_at(pipeline.solver, 1, t)
+    seconds["iterations"] = clock.seconds
+    seconds["solver setup"] = time.perf_counter() - start - clock.seconds
+    start = time.perf_counter()
+    update_at(pipeline.deformer, 0, t)
+    update_at(pipeline.deformer, 1, t)
+    seconds["MVC"] = time.perf_counter() - start
+    start = time.perf_counter()
+    result = motion_run.solve_time_point(pipeline, index)  # stages up to date: probe + rows
+    seconds["statistics"] = time.perf_counter() - start
+    start = time.perf_counter()
+    motion_run.write_time_point(result, out)
+    seconds["writing"] = time.perf_counter() - start
+    return seconds, result
+
+
+def replaced_parts(pipeline, index, result, out) -> list:
+    """``(part, old s, new s)`` on time point ``index``: bone spheres, penetration, writing."""
+    t = pipeline.times[index]
+    bones = update_at(pipeline.pose, 1, t)
+    spacing = pipeline.solver.value("BoneSphereSpacing")
+    rows = []
+    start = time.perf_counter()
+    bone_sets.bone_sphere_set(bones, spacing, use_cache=False)
+    old = time.perf_counter() - start
+    start = time.perf_counter()
+    bone_sets.bone_sphere_set(bones, spacing)
+    rows.append(("bone spheres of the posed bones (sampled / cached)", old,
+                 time.perf_counter() - start))
+    captured = {}
+    kernel = P.max_penetration_pairs
+
+    def capture(*args):
+        captured["args"] = args
+        return kernel(*args)
+
+    P.max_penetration_pairs = capture
+    try:
+        motion_run.solve_time_point(pipeline, index)
+    finally:
+        P.max_penetration_pairs = kernel
+    args = captured["args"]
+    start = time.perf_counter()
+    P.max_penetration_per_object(*args)
+    old = time.perf_counter() - start
+    start = time.perf_counter()
+    kernel(*args)
+    rows.append(("penetration statistics (Python reference / Numba sweep)", old,
+                 time.perf_counter() - start))
+    start = time.perf_counter()
+    motion_run.write_time_point(result, os.path.join(out, "zlib"), compressor="zlib")
+    old = time.perf_counter() - start
+    start = time.perf_counter()
+    motion_run.write_time_point(result, os.path.join(out, "lz4"), compressor="lz4")
+    rows.append(("writing the three series (ZLib / LZ4)", old, time.perf_counter() - start))
+    return rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("sizes", nargs="*", type=int, default=[20, 80])
+    parser.add_argument("--points", type=int, default=4, help="time points per N (first + rest)")
+    args = parser.parse_args(argv)
+    clock = ChunkClock()
+    S._solve_chunk = clock
+    table, replaced = [], []
+    with tempfile.TemporaryDirectory() as folder:
+        write_scene(demo_scene("full"), os.path.join(folder, "scene"))
+        for n in args.sizes:
+            bone_sets.clear_bone_cache()
+            pipeline = build_pipeline(os.path.join(folder, "scene"), {"ParticlesPerFibre": n})
+            step = max(1, (len(pipeline.times) - 1) // max(args.points - 1, 1))
+            indices = list(range(0, len(pipeline.times), step))[:args.points]
+            out = os.path.join(folder, f"out{n}")
+            runs = []
+            for index in indices:
+                seconds, result = time_point_parts(pipeline, index, out, clock)
+                runs.append(seconds)
+                print(f"N={n} t={pipeline.times[index]:.3f}: "
+                      + ", ".join(f"{k} {v:.3f}" for k, v in seconds.items())
+                      + f"; load {os.getloadavg()[0]:.2f}", flush=True)
+            steady = {k: float(np.mean([r[k] for r in runs[1:]])) for k in PARTS} \
+                if len(runs) > 1 else None
+            table.append((n, runs[0], steady, len(runs) - 1, os.getloadavg()[0]))
+            replaced += [(n,) + r for r in replaced_parts(pipeline, indices[-1], result, out)]
+    lines = [
+        "# One time point of a motion run, part by part (issue 15)", "",
+        f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
+        f"({numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, "
+        f"Python {platform.python_version()}. Load average (1 min) after each N is given: the "
+        "machine is shared, so the seconds are pessimistic and vary between runs.", "",
+        "Full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations), the CLI's "
+        "pipeline; `python benchmarks/bench_time_point.py`. Steady state: mean of the time "
+        "points after the first. 'around' = all but the iterations.", "",
+        "| N | time point | " + " | ".join(f"{p} s" for p in PARTS) + " | around s | total s "
+        "| load |",
+        "|---|---|" + "---|" * (len(PARTS) + 3)]
+    for n, first, steady, count, load in table:
+        for label, seconds in (("first", first), (f"steady ({count})", steady)):
+            if seconds is None:
+                continue
+            around = sum(v for k, v in seconds.items() if k != "iterations")
+            lines.append(f"| {n} | {label} | " + " | ".join(f"{seconds[p]:.3f}" for p in PARTS)
+                         + f" | {around:.3f} | {around + seconds['iterations']:.3f} "
+                         f"| {load:.2f} |")
+    lines += ["", "Parts replaced by issue 15, on the last time point's data (old / new):", "",
+              "| N | part | old s | new s | old / new |", "|---|---|---|---|---|"]
+    for n, part, old, new in replaced:
+        lines.append(f"| {n} | {part} | {old:.4f} | {new:.4f} | {old / max(new, 1e-9):.1f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    out = Path(__file__).resolve().parent / "results" / "time_point.md"
+    out.write_text(text)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,194 @@
+"""Per-time-point work around the solver (issue 15): bone spheres cached per bone shape and
+moved rigidly, penetration statistics over arrays, series writing chosen by the user."""
+import numpy as np
+import pytest
+from test_collisions import icosphere_like
+
+from muscle_mss.core.bone_spheres import bone_spheres
+from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.penetration import max_penetration_pairs, max_penetration_per_object
+from muscle_mss.core.mesh_checks import surface_problems
+from muscle_mss.filters import bone_sets, check_cache, motion_run
+from muscle_mss.filters.cli import main, timings_note
+
+SPACING = 3.0
+
+
+def bone():
+    """An egg-shaped closed surface (no rotational symmetry left for the rigid fit to miss)."""
+    points, triangles = icosphere_like(radius=20.0, n=24)
+    return points * [1.6, 1.0, 0.7] + [5.0, -3.0, 40.0], triangles
+
+
+def rotation(seed):
+    q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+@pytest.fixture(autouse=True)
+def empty_cache():
+    bone_sets.clear_bone_cache()
+    check_cache.clear_check_cache()
+    yield
+    bone_sets.clear_bone_cache()
+    check_cache.clear_check_cache()
+
+
+def test_same_bone_is_sampled_once_and_gives_the_same_spheres():
+    points, triangles = bone()
+    first = bone_sets.cached_bone_spheres(points, triangles, SPACING)
+    second = bone_sets.cached_bone_spheres(points.copy(), triangles.copy(), SPACING)
+    fresh = bone_spheres(points, triangles, SPACING)
+    assert bone_sets.cache_counts == {"sampled": 1, "reused": 1, "moved": 0}
+    for a, b, c in zip(first, second, fresh):
+        np.testing.assert_array_equal(a, c)
+        np.testing.assert_array_equal(b, c)
+    first[0][:] = 0.0  # a caller's change does not reach the cache
+    np.testing.assert_array_equal(
+        bone_sets.cached_bone_spheres(points, triangles, SPACING)[0], fresh[0])
+
+
+def test_moved_bone_gets_the_cached_spheres_moved_with_it():
+    points, triangles = bone()
+    rest, radii = bone_sets.cached_bone_spheres(points, triangles, SPACING)
+    r, t = rotation(3), np.array([12.0, -40.0, 7.5])
+    moved, moved_radii = bone_sets.cached_bone_spheres(points @ r.T + t, triangles, SPACING)
+    assert bone_sets.cache_counts == {"sampled": 1, "reused": 0, "moved": 1}
+    np.testing.assert_allclose(moved, rest @ r.T + t, atol=1e-9)
+    np.testing.assert_array_equal(moved_radii, radii)
+    # sampling is equivariant: a fresh sampling of the moved bone gives the same spheres
+    fresh, _ = bone_spheres(points @ r.T + t, triangles, SPACING)
+    assert fresh.shape == moved.shape
+    np.testing.assert_allclose(fresh, moved, atol=1e-9)
+
+
+def test_changed_bone_point_or_spacing_is_sampled_afresh():
+    points, triangles = bone()
+    bone_sets.cached_bone_spheres(points, triangles, SPACING)
+    bent = points @ rotation(5).T
+    bent[7] += [0.0, 0.0, 0.05]  # no longer a rigid copy
+    got, _ = bone_sets.cached_bone_spheres(bent, triangles, SPACING)
+    assert bone_sets.cache_counts == {"sampled": 2, "reused": 0, "moved": 0}
+    np.testing.assert_array_equal(got, bone_spheres(bent, triangles, SPACING)[0])
+    other, radii = bone_sets.cached_bone_spheres(points, triangles, 2.0 * SPACING)
+    assert bone_sets.cache_counts["sampled"] == 3
+    np.testing.assert_array_equal(radii, 2.0 * SPACING)
+    mirrored = points * [-1.0, 1.0, 1.0]  # a reflection is not a rigid motion
+    bone_sets.cached_bone_spheres(mirrored, triangles[:, ::-1], SPACING)
+    assert bone_sets.cache_counts["sampled"] == 4
+
+
+def test_cache_off_samples_every_time_and_bad_bones_still_refused():
+    points, triangles = bone()
+    for _ in range(2):
+        bone_sets.cached_bone_spheres(points, triangles, SPACING, use_cache=False)
+    assert bone_sets.cache_counts == {"sampled": 0, "reused": 0, "moved": 0}
+    bad = points.copy()
+    bad[3] = np.nan
+    with pytest.raises(MuscleMSSError, match="femur"):
+        bone_sets.cached_bone_spheres(bad, triangles, SPACING, where="femur")
+
+
+def test_rest_surface_checked_once_per_content():
+    points, triangles = bone()
+    assert check_cache.rest_surface_problems(points, triangles) == []
+    assert check_cache.rest_surface_problems(points.copy(), triangles) == []
+    assert check_cache.check_counts == {"checked": 1, "reused": 1}
+    flipped = triangles[:, ::-1]
+    want = surface_problems(points, flipped)
+    assert want and check_cache.rest_surface_problems(points, flipped) == want
+    moved = points.copy()
+    moved[0, 0] += 1e-9
+    check_cache.rest_surface_problems(moved, triangles)
+    assert check_cache.check_counts == {"checked": 3, "reused": 1}
+    assert check_cache.rest_surface_problems(points, flipped) == want
+    assert check_cache.check_counts == {"checked": 3, "reused": 2}
+
+
+def test_rigid_fit_recovers_a_known_motion():
+    points, _ = bone()
+    r, t = rotation(11), np.array([1.0, 2.0, 3.0])
+    got_r, got_t, residual = bone_sets.rigid_fit(points, points @ r.T + t)
+    np.testing.assert_allclose(got_r, r, atol=1e-12)
+    np.testing.assert_allclose(got_t, t, atol=1e-9)
+    assert residual < 1e-9
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_penetration_sweep_equals_the_reference_bitwise(seed):
+    rng = np.random.default_rng(seed)
+    n, k = 400, 120
+    centres = rng.uniform(0, 30, (n, 3))
+    radii = rng.uniform(0.2, 2.5, n)
+    owner = rng.integers(0, 5, n)
+    bone_c, bone_r = rng.uniform(0, 30, (k, 3)), rng.uniform(0.5, 4.0, k)
+    fixed = rng.random(n) < 0.3
+    for bones in ((bone_c, bone_r), (None, None)):
+        want = max_penetration_per_object(centres, radii, owner, 6, *bones, fixed)
+        got = max_penetration_pairs(centres, radii, owner, 6, *bones, fixed)
+        np.testing.assert_array_equal(got, want)
+        assert want[:5].min() > 0 and want[5] == 0  # object 5 has no spheres
+    np.testing.assert_array_equal(max_penetration_pairs(np.zeros((0, 3)), [], [], 2), [0, 0])
+
+
+def test_timings_note_lists_the_measured_parts():
+    assert timings_note({"solve": 1.234, "surface": 0.1, "statistics": 0.01, "write": 0.05}) \
+        == "(solve 1.23 + surface 0.10 + write 0.05 s)"
+    assert timings_note({}) == ""
+
+
+def test_write_option_is_checked_before_solving(small_scene_dir, tmp_path, capsys):
+    assert main(["run", str(small_scene_dir), str(tmp_path / "out"), "--write",
+                 "surfaces,bones"]) == 2
+    assert "--write 'surfaces,bones': bones is not a series" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+    assert motion_run.parse_write_option("particles, surfaces") == ("surfaces", "particles")
+
+
+def test_run_writes_only_the_series_asked_for(small_scene_dir, tmp_path):
+    assert main(["run", str(small_scene_dir), str(tmp_path), "--time", "0.5",
+                 "--iterations", "5", "--write", "surfaces"]) == 0
+    assert (tmp_path / "surfaces.pvd").is_file()
+    assert not (tmp_path / "fibres.pvd").exists() and not (tmp_path / "particles.pvd").exists()
+    written = sorted(p.name for p in (tmp_path / "series").glob("*.vtm"))
+    assert len(written) == 1 and written[0].startswith("surfaces_")
+
+
+def read_blocks(path):
+    from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataReader
+    from muscle_mss.filters import vtk_arrays as V
+    reader = vtkXMLMultiBlockDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    return {name: V.points_of(block) for name, block in V.blocks(reader.GetOutput(), "read")}
+
+
+def test_every_compressor_reads_back_the_same_series_and_caches_repeat_bitwise(
+        small_scene_dir, tmp_path):
+    from muscle_mss.filters import vtk_arrays as V
+    pipeline = motion_run.build_pipeline(small_scene_dir, {"Iterations": 5})
+    result = motion_run.solve_time_point(pipeline, 2)
+    assert set(result.timings) == {"solve", "surface", "statistics"}
+    for compressor in motion_run.COMPRESSORS:
+        out = tmp_path / compressor
+        motion_run.write_time_point(result, str(out), compressor=compressor)
+        assert result.timings["write"] > 0
+        for name, data in zip(motion_run.SERIES,
+                              (result.surfaces, result.fibres, result.particles)):
+            back = read_blocks(out / motion_run.series_file(name, 2))
+            want = {n: V.points_of(b) for n, b in V.blocks(data, name)}
+            assert back.keys() == want.keys()
+            for n in want:
+                np.testing.assert_array_equal(back[n], want[n])
+    # the second solve of the same time point uses the cached bone spheres: same rows
+    before, checks = dict(bone_sets.cache_counts), dict(check_cache.check_counts)
+    pipeline.solver.Modified()
+    pipeline.probe.Modified()
+    again = motion_run.solve_time_point(pipeline, 2)
+    assert bone_sets.cache_counts["sampled"] == before["sampled"]
+    assert bone_sets.cache_counts["reused"] > before["reused"]
+    assert check_cache.check_counts["checked"] == checks["checked"] > 0
+    assert check_cache.check_counts["reused"] > checks["reused"]
+    strip = [{k: v for k, v in r.items() if k != "seconds"} for r in result.rows]
+    assert strip == [{k: v for k, v in r.items() if k != "seconds"} for r in again.rows]
