@@ -7,6 +7,8 @@ inputs and the weight properties; they are computed once and reused for every ti
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 from vtkmodules.vtkCommonDataModel import vtkDataObject
@@ -23,7 +25,7 @@ from . import array_names as A
 from . import vtk_arrays as V
 from .base import SDDP, MuscleFilter, Port
 from .properties import Property
-from .scene_io import motion_rows_from_table
+from .scene_io import check_motion_cells, motion_rows_from_table
 
 MOTION_PORT = 2  # index of the Motion input in INPUTS
 
@@ -168,9 +170,22 @@ class RigidPoseTransform(MuscleFilter):
                 info.Set(SDDP.TIME_RANGE(), [times[0], times[-1]], 2)
         return 1
 
+    def _motion_file(self):
+        """The file the motion table was read from, when its producer is a file reader
+        (ParaView's CSV reader in a pipeline built by hand), else None."""
+        if self.GetNumberOfInputConnections(MOTION_PORT) == 0:
+            return None
+        producer = self.GetInputConnection(MOTION_PORT, 0).GetProducer()
+        name = producer.GetFileName() if hasattr(producer, "GetFileName") else None
+        return name if isinstance(name, str) and os.path.isfile(name) else None
+
     def _read_motion(self, table, bone_names):
         key = (table.GetAddressAsString("vtkObjectBase"), table.GetMTime(), tuple(bone_names))
         if key != self._motion_key:
+            path = self._motion_file()
+            if path is not None:
+                # a CSV reader reads an empty cell as 0 (a bone moved by tens of mm): name it
+                check_motion_cells(path)
             times, bones, values = motion_rows_from_table(table)
             self._motion = motion_from_rows(times, bones, values, known_bones=bone_names)
             self._motion_key = key

@@ -178,7 +178,7 @@ def multiblock_reader(path):
     return reader
 
 
-def _check_cells(path):
+def check_motion_cells(path):
     """Every data row of ``motion.csv`` has a value in every column of its header: an empty or
     missing cell is an error naming its row (1 = the first data row, as the motion rules count)
     and column (VTK's reader would read it as 0: a bone moved by tens of millimetres)."""
@@ -204,7 +204,7 @@ def motion_reader(path):
     """An updated delimited-text reader of ``motion.csv`` set up as ParaView's CSV reader, but
     with empty cells read as NaN (ParaView's default reads them as 0), so that the motion rules
     name them; VTK's reader errors become our error."""
-    _check_cells(path)
+    check_motion_cells(path)
     reader = vtkDelimitedTextReader()
     reader.SetFileName(path)
     reader.SetHaveHeaders(True)

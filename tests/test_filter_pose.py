@@ -433,3 +433,19 @@ def test_small_demo_scene_through_the_real_upstream_filters(small_scene, small_s
         np.testing.assert_allclose(weights.sum(axis=1), 1.0, atol=1e-12)
         assert np.isfinite(V.points_of(block)).all()
         assert not np.array_equal(V.points_of(block), V.point_array(block, A.REST_POSITION))
+
+
+def test_an_empty_cell_behind_a_plain_csv_reader_is_named_not_read_as_zero(tmp_path, messages):
+    """ParaView's CSV reader (a delimited-text reader at its defaults, as a user builds the
+    pipeline by hand) reads an empty cell as 0: the filter checks the reader's file itself."""
+    path = write_csv(tmp_path / "motion.csv", motion_rows())
+    lines = path.read_text().splitlines()
+    cells = lines[3].split(",")
+    cells[5] = ""                                   # m03: the femur's x translation at t = 0.5
+    lines[3] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    before = path.read_text()
+    f = pose_filter(csv_reader(path))
+    with pytest.raises(MuscleMSSError, match=r"row 3 \(line 4\), column m03: the cell is empty"):
+        f.Update()
+    assert path.read_text() == before
