@@ -183,6 +183,9 @@ def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
     assert loaded["muscle"] == list(MUSCLE_NAMES) + ["mean"]
     assert all(v > 0 for v in loaded["volume"])
     assert loaded["time"] == pytest.approx(scene.motion.times[farthest_pose_index(scene.motion)])
+    shown = run_script("xvfb-run", "-a", "pvpython", "state_displays.py", state, tmp_path)
+    assert shown["fibres_visible"] is False
+    assert sorted(shown["chart_series"]) == sorted(f"mean_displacement_{m}" for m in MUSCLE_NAMES)
 
 
 @pytest.mark.parametrize("settings, message", [
