@@ -64,12 +64,8 @@ DEFAULT_TIME_STEP = 0.05
 DEFAULT_DRAG = 5.0
 # Without a volume force the converged lattices lose 9-22 % of their volume where the posed
 # fibres are stretched ~10 % (lattice-26 cells 2.5 times longer than wide narrow several
-# times faster than they stretch). 5 g/(mm s^2) kept the cage volumes within ~3 % while the
-# tendon ends were blended; with the ends on their attachment bones the muscles wrapping a joint
-# stretch further (triceps 19-31 % at 130 degrees of elbow flexion) and 50 was measured over the
-# whole demo motions (README, issue 12): mean volume error thigh walk 1.76 -> 0.88 %, elbow
-# flexion 4.44 -> 1.26 %, stable at the default time step.
-DEFAULT_BULK_MODULUS = 50.0
+# times faster than they stretch); 5 g/(mm s^2) keeps the cage volumes within ~3 %.
+DEFAULT_BULK_MODULUS = 5.0
 # The final collision passes (:func:`_project`): a sphere pressed between two objects keeps
 # half its overlap per pass (two passes halve it), so 100 passes leave any overlap below 1e-15
 # of itself; they stop as soon as the deepest penetration is below the tolerance.
