@@ -23,17 +23,9 @@ import numpy as np
 from muscle_mss.core import bone_distance as D
 from muscle_mss.core.demo_scene import demo_scene
 
+from bench_solver import cpu_model
+
 QUERIES = 1_000_000
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def warm_up():

@@ -35,17 +35,9 @@ from muscle_mss.filters import bone_sets, motion_run
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
+from bench_solver import cpu_model
+
 PARTS = ("pose", "solver setup", "iterations", "MVC", "statistics", "writing")
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 class ChunkClock:

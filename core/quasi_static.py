@@ -55,7 +55,7 @@ from numba import njit, prange
 
 from . import solver as S
 from .errors import MuscleMSSError
-from .mss import _muscle_forces, _volume_forces, make_spheres
+from .mss import _muscle_forces, _volume_forces
 
 DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a step
 DEFAULT_HISTORY = 5             # Anderson acceleration depth
@@ -285,16 +285,8 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     scratch = np.zeros_like(x)
     free = fac.free
 
-    if bone_centres is None:
-        bone_centres, bone_radius, bone_id = np.zeros((0, 3)), np.zeros(0), np.zeros(0, int)
-    spheres = make_spheres(prep.radius, prep.muscle, prep.fixed, prep.boundary, bone_centres,
-                           bone_radius, bone_id)
+    spheres, sphere_state = S.collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
-    nb = len(spheres.bone_radius)
-    sphere_state = (spheres.particle, spheres.radius, spheres.muscle, spheres.fixed,
-                    ~spheres.fixed, np.zeros((3, ns)), np.zeros((3, ns + nb)),
-                    np.zeros(ns + nb, dtype=np.uint8), np.zeros(ns, dtype=np.int64),
-                    np.zeros(ns), np.searchsorted(spheres.muscle, np.arange(n_muscles + 1)))
     use_bvh = settings.structure == "octree BVH"
     hashed = S._hash_state(spheres, not use_bvh)
     bvh = S._bvh_state(spheres, S.SolverSettings(

@@ -620,6 +620,26 @@ def _divergence_limits(positions, offsets, reach) -> np.ndarray:
     return limits
 
 
+def collision_spheres(prep: PreparedModel, bone_centres=None, bone_radius=None, bone_id=None):
+    """The model's collision spheres and bones' spheres (:func:`make_spheres`; no bones when
+    ``bone_centres`` is None) and the contact kernels' per-sphere state: ``(spheres, (particle,
+    radius, muscle, fixed, moves, centres (3, s), displacements (3, s + b), collided (s + b,),
+    pair counts, deepest pair penetrations, each muscle's first sphere (M + 1,)))``, shared by
+    the paper relaxation and the quasi-static method."""
+    if bone_centres is None:
+        bone_centres, bone_radius, bone_id = np.zeros((0, 3)), np.zeros(0), np.zeros(0, int)
+    spheres = make_spheres(prep.radius, prep.muscle, prep.fixed, prep.boundary, bone_centres,
+                           bone_radius, bone_id)
+    ns = spheres.count
+    nb = len(spheres.bone_radius)
+    n_muscles = len(prep.offsets) - 1
+    state = (spheres.particle, spheres.radius, spheres.muscle, spheres.fixed, ~spheres.fixed,
+             np.zeros((3, ns)), np.zeros((3, ns + nb)), np.zeros(ns + nb, dtype=np.uint8),
+             np.zeros(ns, dtype=np.int64), np.zeros(ns),
+             np.searchsorted(spheres.muscle, np.arange(n_muscles + 1)))
+    return spheres, state
+
+
 def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
           settings: SolverSettings | None = None, progress=None,
           prepared: PreparedModel | None = None) -> SolveResult:
@@ -648,16 +668,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             float(settings.drag), float(settings.bulk_modulus)) + prep.cages.arrays
            + (offsets,) + prep.layout.arrays)
 
-    if bone_centres is None:
-        bone_centres, bone_radius, bone_id = np.zeros((0, 3)), np.zeros(0), np.zeros(0, int)
-    spheres = make_spheres(prep.radius, prep.muscle, prep.fixed, prep.boundary, bone_centres,
-                           bone_radius, bone_id)
+    spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
-    nb = len(spheres.bone_radius)
-    sphere_state = (spheres.particle, spheres.radius, spheres.muscle, spheres.fixed,
-                    ~spheres.fixed, np.zeros((3, ns)), np.zeros((3, ns + nb)),
-                    np.zeros(ns + nb, dtype=np.uint8), np.zeros(ns, dtype=np.int64),
-                    np.zeros(ns), np.searchsorted(spheres.muscle, np.arange(n_muscles + 1)))
     hashed = _hash_state(spheres, settings.structure == "spatial hash")
     bvh = _bvh_state(spheres, settings)
 
