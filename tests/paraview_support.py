@@ -4,6 +4,7 @@ The child processes get ``plugin/shim`` on PYTHONPATH (the 5.11 ``getargspec`` f
 checkout importable as ``muscle_mss``), the plugin folder on PV_PLUGIN_PATH, and a Numba cache of
 their own (ParaView's numba 0.56 and the venv's numba must not share one).
 """
+import atexit
 import json
 import os
 import subprocess
@@ -30,9 +31,51 @@ def paraview_env(**extra) -> dict:
     return env
 
 
+_X_SERVER: list = []  # the one Xvfb of this test process: [Popen, display]
+
+
+def x_display() -> str:
+    """The DISPLAY of one Xvfb (1280x1024x24) shared by every headless command of this test
+    process, started on first use and stopped at exit.
+
+    ``xvfb-run -a`` starts a server per command and guesses a free number from lock files; on
+    CI a command once got a display whose server was not accepting connections ("bad X server
+    connection. DISPLAY=:99") and pvpython aborted. ``Xvfb -displayfd`` picks a free number
+    itself and writes it only once it accepts connections.
+    """
+    if _X_SERVER and _X_SERVER[0].poll() is None:
+        return _X_SERVER[1]
+    _X_SERVER.clear()
+    read, write = os.pipe()
+    server = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", "1280x1024x24",
+                               "-nolisten", "tcp"], pass_fds=(write,),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    os.close(write)
+    with os.fdopen(read) as ready:
+        number = ready.readline().strip()
+    if not number:
+        raise AssertionError(f"Xvfb did not start: {server.stderr.read().decode()[-2000:]}")
+    atexit.register(server.terminate)
+    _X_SERVER.extend([server, f":{number}"])
+    return _X_SERVER[1]
+
+
+def _headless(command: list, extra_env: dict) -> list:
+    """``xvfb-run [-a] [-s ARGS] CMD…`` → ``CMD…`` on the shared server (see ``x_display``)."""
+    if not command or command[0] != "xvfb-run":
+        return command
+    rest = command[1:]
+    while rest and rest[0] in ("-a", "-s"):
+        rest = rest[2:] if rest[0] == "-s" else rest[1:]
+    extra_env["DISPLAY"] = x_display()
+    return rest
+
+
 def run(command, timeout=600, cwd=REPO, **extra_env) -> subprocess.CompletedProcess:
-    """Run a ParaView command line; fail with its output when it exits non-zero."""
-    proc = subprocess.run([str(c) for c in command], cwd=cwd, env=paraview_env(**extra_env),
+    """Run a ParaView command line; fail with its output when it exits non-zero. A command
+    written ``xvfb-run …`` runs on the test process's shared Xvfb (``x_display``)."""
+    command = _headless([str(c) for c in command], extra_env)
+    proc = subprocess.run(command, cwd=cwd, env=paraview_env(**extra_env),
                           capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(map(str, command))} exited {proc.returncode}\n"
