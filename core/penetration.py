@@ -11,6 +11,22 @@ from numba import njit, prange
 from scipy.spatial import cKDTree
 
 
+def _spheres(centres, radii, owner, bone_centres, bone_radii, fixed):
+    """The muscle spheres as arrays (centres (n, 3), radii (n,), owner (n,), free (n,)), then
+    the same four over muscle and bone spheres together, the bones owned by -1 and never free."""
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    owner = np.asarray(owner, dtype=np.int64).reshape(-1)
+    free = np.ones(len(centres), bool) if fixed is None else ~np.asarray(fixed, bool).reshape(-1)
+    if bone_centres is None or not len(bone_centres):
+        return centres, radii, owner, free, centres, radii, owner, free
+    return (centres, radii, owner, free,
+            np.concatenate([centres, np.asarray(bone_centres, dtype=np.float64)]),
+            np.concatenate([radii, np.asarray(bone_radii, dtype=np.float64)]),
+            np.concatenate([owner, np.full(len(bone_centres), -1)]),
+            np.concatenate([free, np.zeros(len(bone_centres), bool)]))
+
+
 def max_penetration_per_object(centres, radii, owner, n_objects, bone_centres=None,
                                bone_radii=None, fixed=None) -> np.ndarray:
     """Deepest overlap (mm; 0 when none) of each object's spheres with spheres of other objects,
@@ -26,17 +42,8 @@ def max_penetration_per_object(centres, radii, owner, n_objects, bone_centres=No
         Bone spheres; they count as objects of their own for every muscle.
     fixed : (n,) bool, optional, muscle spheres that never move
     """
-    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
-    owner = np.asarray(owner, dtype=np.int64).reshape(-1)
-    free = np.ones(len(centres), bool) if fixed is None else ~np.asarray(fixed, bool).reshape(-1)
-    if bone_centres is not None and len(bone_centres):
-        centres_all = np.concatenate([centres, np.asarray(bone_centres, dtype=np.float64)])
-        radii_all = np.concatenate([radii, np.asarray(bone_radii, dtype=np.float64)])
-        owner_all = np.concatenate([owner, np.full(len(bone_centres), -1)])
-        free_all = np.concatenate([free, np.zeros(len(bone_centres), bool)])
-    else:
-        centres_all, radii_all, owner_all, free_all = centres, radii, owner, free
+    centres, radii, owner, free, centres_all, radii_all, owner_all, free_all = _spheres(
+        centres, radii, owner, bone_centres, bone_radii, fixed)
     deepest = np.zeros(n_objects)
     if len(centres) == 0:
         return deepest
@@ -62,17 +69,8 @@ def max_penetration_pairs(centres, radii, owner, n_objects, bone_centres=None,
     result, bitwise (the same depth formula over a superset of the reference's pairs, the extra
     ones farther apart than their radii); :func:`max_penetration_per_object` stays as its slow
     reference."""
-    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
-    owner = np.asarray(owner, dtype=np.int64).reshape(-1)
-    free = np.ones(len(centres), bool) if fixed is None else ~np.asarray(fixed, bool).reshape(-1)
-    if bone_centres is not None and len(bone_centres):
-        centres_all = np.concatenate([centres, np.asarray(bone_centres, dtype=np.float64)])
-        radii_all = np.concatenate([radii, np.asarray(bone_radii, dtype=np.float64)])
-        owner_all = np.concatenate([owner, np.full(len(bone_centres), -1)])
-        free_all = np.concatenate([free, np.zeros(len(bone_centres), bool)])
-    else:
-        centres_all, radii_all, owner_all, free_all = centres, radii, owner, free
+    centres, radii, owner, free, centres_all, radii_all, owner_all, free_all = _spheres(
+        centres, radii, owner, bone_centres, bone_radii, fixed)
     deepest = np.zeros(n_objects)
     if len(centres) == 0:
         return deepest

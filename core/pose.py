@@ -304,6 +304,13 @@ def _blend_linear(points, weights, matrices, out):
         out[i, 2] = z + dz
 
 
+def _checked_blend(points, weights, matrices):
+    """The arguments of a blend, checked: (points (n, 3), weights (n, B), matrices (B, 3, 4))."""
+    p = _check_points(points)
+    m = _check_matrices(matrices)
+    return p, _check_weights(weights, len(p), len(m)), m
+
+
 def blend_linear(points, weights, matrices) -> np.ndarray:
     """Linear blend skinning: ``x' = sum_b w_b (R_b x + t_b)``.
 
@@ -320,9 +327,7 @@ def blend_linear(points, weights, matrices) -> np.ndarray:
     -------
     (n, 3) float64, posed positions, mm (a new array)
     """
-    p = _check_points(points)
-    m = _check_matrices(matrices)
-    w = _check_weights(weights, len(p), len(m))
+    p, w, m = _checked_blend(points, weights, matrices)
     out = np.empty_like(p)
     _blend_linear(p, w, m, out)
     return out
@@ -424,9 +429,7 @@ def blend_dual_quaternion(points, weights, matrices) -> np.ndarray:
     -------
     (n, 3) float64, posed positions, mm (a new array)
     """
-    p = _check_points(points)
-    m = _check_matrices(matrices)
-    w = _check_weights(weights, len(p), len(m))
+    p, w, m = _checked_blend(points, weights, matrices)
     real = np.empty((len(m), 4))
     dual = np.empty((len(m), 4))
     _dual_quaternions(m, real, dual)
