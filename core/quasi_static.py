@@ -27,7 +27,9 @@ contact pulls): for the springs this is exactly the local step (each spring's re
 direction) followed by the global solve, since ``L x + f_springs(x)`` is the global step's
 right-hand side; the contact term's target is the contact-resolved position of a penetrating
 sphere and the current position of every other sphere, so the matrix never changes when
-contacts come and go. The fixed point is the equilibrium ``g(x) = 0``.
+contacts come and go. The fixed point is the equilibrium ``g(x) = 0``. The volume term's
+whole-cage mode, stiff at the default BulkModulus and absent from ``A``, is added to ``A`` as a
+rank-one update per muscle at the current state (:func:`_with_volume_stiffness`).
 
 Acceleration. Anderson acceleration (Peng et al. 2018) over the last :attr:`history` steps,
 restarted when the set of colliding spheres changes (the map's pieces change there) and
@@ -55,7 +57,7 @@ from numba import njit, prange
 
 from . import solver as S
 from .errors import MuscleMSSError
-from .mss import _muscle_forces, _volume_forces
+from .mss import _add_cage_gradient, _muscle_forces, _volume_forces
 
 DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a step
 DEFAULT_HISTORY = 5             # Anderson acceleration depth
@@ -170,18 +172,24 @@ def factor(prep: S.PreparedModel, contact_weight: float = DEFAULT_CONTACT_WEIGHT
 # ---- kernels ---------------------------------------------------------------------------------
 
 @njit(cache=True, parallel=True)
-def _forces_and_gather(x, still, force, scratch, bulk_modulus, cage_ptr, cage_triangles,
-                       rest_volume, offsets, runs_int, runs_param, lane_rest, run_ptr,
-                       scattered_int, scattered_param, scattered_ptr, spheres):
+def _forces_and_gather(x, still, force, scratch, gradient, bulk_modulus, cage_ptr,
+                       cage_triangles, rest_volume, offsets, runs_int, runs_param, lane_rest,
+                       run_ptr, scattered_int, scattered_param, scattered_ptr, spheres):
     """Spring and volume forces on every particle into ``force`` (3, n) (``still`` (3, n)
-    zeros: velocities, so the springs' damping adds nothing), each muscle's sphere centres
-    gathered for the collision tests — one parallel region over the muscles."""
+    zeros: velocities, so the springs' damping adds nothing), each muscle's cage volume
+    gradient ``dV/dx`` into ``gradient`` (3, n) (zero off the cages, and everywhere when
+    ``bulk_modulus`` is 0), each muscle's sphere centres gathered for the collision tests —
+    one parallel region over the muscles."""
     particle, centres, disp, collided, sphere_ptr = (spheres[0], spheres[5], spheres[6],
                                                      spheres[7], spheres[10])
     for m in prange(offsets.shape[0] - 1):
         _muscle_forces(m, x, still, force, scratch, offsets, runs_int, runs_param, lane_rest,
                        run_ptr, scattered_int, scattered_param, scattered_ptr)
         _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus)
+        for axis in range(3):
+            gradient[axis, offsets[m]:offsets[m + 1]] = 0.0
+        if bulk_modulus > 0.0 and cage_ptr[m + 1] > cage_ptr[m]:
+            _add_cage_gradient(m, x, gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
         for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
             S._gather_sphere(s, x, particle, centres, disp, collided)
 
@@ -214,6 +222,22 @@ def _muscle_moves(step, free, muscle, n_muscles, out):
 
 
 # ---- the driver ------------------------------------------------------------------------------
+
+def _with_volume_stiffness(delta, fac: Factor, gradient, free_muscle, volume_stiffness):
+    """Turn the step ``delta = A^-1 f`` (f, 3) into ``(A + K)^-1 f`` in place, ``K`` the volume
+    energy's stiff part, ``(BulkModulus / V_rest) g g^T`` per muscle with ``g = dV/dx``
+    (``gradient`` (f, 3) on the free particles). ``A`` alone leaves that whole-cage mode out:
+    at BulkModulus 50 a step of ``A^-1 f`` overshoots it and the iteration diverges. Sherman-
+    Morrison per muscle (``A`` is block diagonal): ``delta - A^-1 g c (g . delta) / (1 + c
+    g . A^-1 g)``, one more solve with ``A`` for all muscles at once."""
+    solved = fac.lu.solve(gradient)
+    n_muscles = len(volume_stiffness)
+    along = np.bincount(free_muscle, np.einsum("ij,ij->i", gradient, delta), minlength=n_muscles)
+    self_ = np.bincount(free_muscle, np.einsum("ij,ij->i", gradient, solved),
+                        minlength=n_muscles)
+    scale = volume_stiffness * along / (1.0 + volume_stiffness * self_)
+    delta -= solved * scale[free_muscle, None]
+
 
 def _settled(residual, tolerance) -> bool:
     """Whether the iteration has reached the tolerance: the last step moved no particle more
@@ -283,7 +307,10 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     still = np.zeros_like(x)
     force = np.zeros_like(x)
     scratch = np.zeros_like(x)
+    gradient = np.zeros_like(x)
     free = fac.free
+    free_muscle = prep.muscle[free]
+    volume_stiffness = float(settings.bulk_modulus) / prep.cages.rest_volume   # (M,) g/(mm^4 s^2)
 
     spheres, sphere_state = S.collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
@@ -311,11 +338,14 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         """The plain step at ``state`` (3, n): ``(A^-1 g (f, 3), largest move, lists,
         pairs...)``."""
         tick = time.perf_counter()
-        _forces_and_gather(state, still, force, scratch, *mss, sphere_state)
+        _forces_and_gather(state, still, force, scratch, gradient, *mss, sphere_state)
         mm_count, mb_count, deepest, t_mm, t_mb, _, lists = S._collide(
             sphere_state, fixed_state, bvh, use_bvh, muscle_cd, bone_cd, lists)
         _add_pulls(force, fac.weight, spheres.particle, sphere_state[6], collided)
         delta = fac.lu.solve(np.ascontiguousarray(force[:, free].T))
+        if settings.bulk_modulus > 0.0:
+            _with_volume_stiffness(delta, fac, np.ascontiguousarray(gradient[:, free].T),
+                                   free_muscle, volume_stiffness)
         phases[0] += time.perf_counter() - tick - t_mm - t_mb
         phases[1] += t_mm
         phases[2] += t_mb
