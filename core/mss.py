@@ -14,8 +14,9 @@ velocity, integrated implicitly so that it is stable at any strength (the dampin
 springs is explicit and bounded by ``c dt n / m < 2`` for ``n`` springs per particle, far below
 what converging needs), and the pressure of each muscle's closed cage (the MVC cage of
 :mod:`muscle_mss.core.cage`) against a change of its volume: muscle is nearly incompressible,
-while a spring lattice with long cells narrows several times faster than it stretches. The step
-is semi-implicit Euler, ``v = (v + dt f / m) / (1 + dt drag)``, ``x += dt v``; fixed particles
+while a spring lattice with long cells narrows several times faster than it stretches. The
+pressure's stiff whole-cage mode is taken implicitly too (:func:`_implicit_volume_forces`), so
+that a stiff BulkModulus does not shorten the stable time step. The step is semi-implicit Euler, ``v = (v + dt f / m) / (1 + dt drag)``, ``x += dt v``; fixed particles
 (tendon attachments) never move.
 
 Speed. Springs are grouped into *runs*: springs of one muscle with the same index offset
@@ -256,17 +257,14 @@ def _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus):
-    """Add the pressure force of muscle ``m``'s cage to ``force`` (see :func:`mss_steps`).
+def _cage_volume(m, x, cage_ptr, cage_triangles):
+    """Six times the volume (mm^3) of muscle ``m``'s cage at ``x`` (3, n).
 
     Coordinates are taken relative to one cage vertex ``o``: the volume of a closed cage is
     ``sum (a - o).((b - o) x (c - o)) / 6`` for any ``o``, and near the cage the products keep
     their digits (absolute coordinates are hundreds of mm, the cage tens)."""
     first, stop = cage_ptr[m], cage_ptr[m + 1]
-    if stop == first or bulk_modulus == 0.0:
-        return
     x0, x1, x2 = x[0], x[1], x[2]
-    f0, f1, f2 = force[0], force[1], force[2]
     corner = np.uint64(cage_triangles[first, 0])
     ox, oy, oz = x0[corner], x1[corner], x2[corner]
     volume = 0.0
@@ -279,8 +277,18 @@ def _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modu
         cy, cz = x1[c] - oy, x2[c] - oz
         volume += ((x0[a] - ox) * (by * cz - bz * cy) + (x0[b] - ox) * (cy * az - cz * ay)
                    + (x0[c] - ox) * (ay * bz - az * by))
-    # the gradient of volume = sum a.(b x c) / 6 with respect to a is (b x c) / 6
-    pressure = -bulk_modulus * (volume / (6.0 * rest_volume[m]) - 1.0) / 6.0
+    return volume
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _add_cage_gradient(m, x, out, scale, cage_ptr, cage_triangles):
+    """Add ``scale`` times six times the gradient of muscle ``m``'s cage volume to ``out`` (3, n):
+    the gradient of ``sum a.(b x c) / 6`` with respect to ``a`` is ``(b x c) / 6``."""
+    first, stop = cage_ptr[m], cage_ptr[m + 1]
+    x0, x1, x2 = x[0], x[1], x[2]
+    f0, f1, f2 = out[0], out[1], out[2]
+    corner = np.uint64(cage_triangles[first, 0])
+    ox, oy, oz = x0[corner], x1[corner], x2[corner]
     for t in range(np.uint64(first), np.uint64(stop)):
         a = np.uint64(cage_triangles[t, 0])
         b = np.uint64(cage_triangles[t, 1])
@@ -288,15 +296,68 @@ def _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modu
         ax, ay, az = x0[a] - ox, x1[a] - oy, x2[a] - oz
         bx, by, bz = x0[b] - ox, x1[b] - oy, x2[b] - oz
         cx, cy, cz = x0[c] - ox, x1[c] - oy, x2[c] - oz
-        f0[a] += pressure * (by * cz - bz * cy)
-        f1[a] += pressure * (bz * cx - bx * cz)
-        f2[a] += pressure * (bx * cy - by * cx)
-        f0[b] += pressure * (cy * az - cz * ay)
-        f1[b] += pressure * (cz * ax - cx * az)
-        f2[b] += pressure * (cx * ay - cy * ax)
-        f0[c] += pressure * (ay * bz - az * by)
-        f1[c] += pressure * (az * bx - ax * bz)
-        f2[c] += pressure * (ax * by - ay * bx)
+        f0[a] += scale * (by * cz - bz * cy)
+        f1[a] += scale * (bz * cx - bx * cz)
+        f2[a] += scale * (bx * cy - by * cx)
+        f0[b] += scale * (cy * az - cz * ay)
+        f1[b] += scale * (cz * ax - cx * az)
+        f2[b] += scale * (cx * ay - cy * ax)
+        f0[c] += scale * (ay * bz - az * by)
+        f1[c] += scale * (az * bx - ax * bz)
+        f2[c] += scale * (ax * by - ay * bx)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus):
+    """Add the pressure force of muscle ``m``'s cage to ``force`` (3, n): ``-bulk_modulus
+    (V / V_rest - 1) dV/dx``, minus the gradient of the energy ``bulk_modulus V_rest
+    (V / V_rest - 1)^2 / 2`` (see :func:`mss_steps`)."""
+    if cage_ptr[m + 1] == cage_ptr[m] or bulk_modulus == 0.0:
+        return
+    volume = _cage_volume(m, x, cage_ptr, cage_triangles)
+    pressure = -bulk_modulus * (volume / (6.0 * rest_volume[m]) - 1.0) / 6.0
+    _add_cage_gradient(m, x, force, pressure, cage_ptr, cage_triangles)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _implicit_volume_forces(m, x, v, force, gradient, inv_mass, dt, cage_ptr, cage_triangles,
+                            rest_volume, bulk_modulus, first, stop):
+    """Add muscle ``m``'s pressure force to ``force`` (3, n) so that the semi-implicit Euler
+    step that follows takes the volume term implicitly (backward Euler on its stiffness).
+
+    The volume energy's Hessian is dominated by the rank-one ``K = (bulk_modulus / V_rest)
+    g g^T``, ``g = dV/dx`` over the whole cage: one stiff mode (every cage vertex moving along
+    its normal at once) whose explicit step is stable only below ``dt = 2 / sqrt(bulk_modulus /
+    V_rest g^T M^-1 g)`` (0.03 s for the small demo's thigh at BulkModulus 50, below the
+    default TimeStep). The backward Euler velocity change ``(M + dt^2 K) dv = dt (f - dt K v)``
+    is solved in closed form (Sherman-Morrison): the force handed to the integration becomes
+    ``r - g (c g^T M^-1 r) / (1 + c g^T M^-1 g)``, ``r = f - dt K v``, ``c = dt^2 bulk_modulus
+    / V_rest``. Stable at any BulkModulus; the equilibria (``f = 0``, ``v = 0``) are unchanged.
+    ``gradient`` (3, n) is work space (its entries ``[first, stop)`` are overwritten)."""
+    if cage_ptr[m + 1] == cage_ptr[m] or bulk_modulus == 0.0:
+        return
+    for axis in range(3):
+        gradient[axis, first:stop] = 0.0
+    _add_cage_gradient(m, x, gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
+    volume = _cage_volume(m, x, cage_ptr, cage_triangles) / 6.0
+    stiffness = bulk_modulus / rest_volume[m]
+    g_v = 0.0
+    for axis in range(3):
+        for p in range(first, stop):
+            g_v += gradient[axis, p] * v[axis, p]
+    along = -bulk_modulus * (volume / rest_volume[m] - 1.0) - dt * stiffness * g_v
+    g_m_r = 0.0
+    g_m_g = 0.0
+    for axis in range(3):
+        for p in range(first, stop):
+            force[axis, p] += along * gradient[axis, p]
+            g_m_r += inv_mass[p] * gradient[axis, p] * force[axis, p]
+            g_m_g += inv_mass[p] * gradient[axis, p] * gradient[axis, p]
+    c = dt * dt * stiffness
+    correction = c * g_m_r / (1.0 + c * g_m_g)
+    for axis in range(3):
+        for p in range(first, stop):
+            force[axis, p] -= correction * gradient[axis, p]
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
@@ -317,7 +378,9 @@ def muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulu
     Muscles are independent: callers run them as the tasks of one ``prange``."""
     _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest,
                    run_ptr, scattered_int, scattered_param, scattered_ptr)
-    _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus)
+    # the spring kernels are done with scratch's entries of muscle m: the volume term reuses them
+    _implicit_volume_forces(m, x, v, force, scratch, inv_mass, dt, cage_ptr, cage_triangles,
+                            rest_volume, bulk_modulus, muscle_offsets[m], muscle_offsets[m + 1])
     keep = 1.0 / (1.0 + dt * drag)
     for axis in range(3):
         _integrate(x[axis], v[axis], x_prev[axis], force[axis], inv_mass, muscle_offsets[m],
@@ -380,7 +443,8 @@ def mss_steps(positions, velocities, masses, fixed, layout: SpringLayout, muscle
     implicitly (``v <- (v + dt f / m) / (1 + dt drag)``) so that it is stable at any strength.
     ``bulk_modulus`` (g/(mm s^2), a pressure) with ``cages`` adds the pressure of each muscle's
     closed cage, ``p = -bulk_modulus (V / V_rest - 1)``, as the force ``p dV/dx`` on its
-    vertices (the gradient of the energy ``bulk_modulus V_rest (V / V_rest - 1)^2 / 2``).
+    vertices (the gradient of the energy ``bulk_modulus V_rest (V / V_rest - 1)^2 / 2``),
+    its stiffness along ``dV/dx`` taken implicitly (:func:`_implicit_volume_forces`).
     """
     offsets = np.asarray(muscle_offsets, dtype=np.int64)
     n = int(offsets[-1])
