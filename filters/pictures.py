@@ -185,17 +185,25 @@ def poses_picture(pipeline, index, path, window_size=(1800, 800)) -> str:
     pyvista = _pyvista_off_screen()
     plotter = pyvista.Plotter(off_screen=True, shape=(1, 3), window_size=list(window_size),
                               border=False)
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
     for column, (title, muscles, bones) in enumerate(panels):
         plotter.subplot(0, column)
         plotter.set_background("#30343c")
         plotter.add_text(title, font_size=11, color="white")
-        for _, bone in V.blocks(bones, "bones"):
-            plotter.add_mesh(pyvista.wrap(bone), color=BONE_COLOUR, smooth_shading=True)
-        for m, (_, muscle) in enumerate(V.blocks(muscles, "muscles")):
-            plotter.add_mesh(pyvista.wrap(muscle), color=MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)],
-                             smooth_shading=True)
+        meshes = [(pyvista.wrap(bone), BONE_COLOUR) for _, bone in V.blocks(bones, "bones")]
+        meshes += [(pyvista.wrap(muscle), MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)])
+                   for m, (_, muscle) in enumerate(V.blocks(muscles, "muscles"))]
+        for mesh, colour in meshes:
+            plotter.add_mesh(mesh, color=colour, smooth_shading=True)
+            if mesh.n_points:
+                low = np.minimum(low, np.asarray(mesh.bounds[0::2]))
+                high = np.maximum(high, np.asarray(mesh.bounds[1::2]))
+    # one camera for the three panels, framing everything any of them shows: the posed limb
+    # swings out of the rest pose's box (a forearm at 130 degrees, a shank at full knee flexion)
+    for column in range(len(panels)):
+        plotter.subplot(0, column)
         plotter.view_vector((1.0, 0.8, 0.2), viewup=(0.0, 0.0, 1.0))
-        plotter.reset_camera()
+        plotter.reset_camera(bounds=np.stack([low, high], axis=1).ravel().tolist())
         plotter.camera.zoom(1.25)
     plotter.link_views()
     plotter.screenshot(str(path))

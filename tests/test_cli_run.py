@@ -78,3 +78,44 @@ def test_run_quasi_static_method_records_its_residual(small_scene_dir, tmp_path)
 def test_run_refuses_a_broken_scene_with_a_clear_error(tmp_path, capsys):
     assert main(["run", str(tmp_path), str(tmp_path / "out")]) == 2
     assert "muscles.vtm: missing" in capsys.readouterr().err
+
+
+def cut_off_pixels(path, panels=3, title_rows=45, frame=3):
+    """Foreground pixels on the outer ``frame`` pixels of each panel of a poses picture (the
+    top rows are left out where the panel's title is written, at its left)."""
+    from PIL import Image
+    pixels = np.asarray(Image.open(path).convert("RGB"), dtype=float)
+    background = np.array([0x30, 0x34, 0x3C], dtype=float)
+    width = pixels.shape[1] // panels
+    counts = []
+    for column in range(panels):
+        panel = pixels[:, column * width:(column + 1) * width]
+        shown = np.abs(panel - background).sum(axis=2) > 40
+        edge = np.zeros_like(shown)
+        edge[-frame:, :] = edge[:, :frame] = edge[:, -frame:] = True
+        edge[:frame, width // 2:] = True
+        edge[:title_rows, :width // 2] = False
+        counts.append(int((shown & edge).sum()))
+    return counts
+
+
+@pytest.mark.parametrize("region", ["thigh", "arm"])
+def test_poses_picture_frames_a_pose_that_swings_out_of_the_rest_box(region, tmp_path):
+    from muscle_mss.core.motion import farthest_pose_index
+    from muscle_mss.filters import motion_run
+    from muscle_mss.filters.cli import demo_region_scene
+    from muscle_mss.filters.pictures import poses_picture
+    from muscle_mss.filters.scene_io import write_scene
+
+    scene = demo_region_scene(region, "small")
+    index = farthest_pose_index(scene.motion)
+    # the whole limb carried 300 mm sideways to the view at the most flexed pose, as a scene in
+    # which the pose swings a limb far from where it rests (the rotations, and so the pose
+    # pictured, are unchanged)
+    scene.motion.matrices[index, :, :, 3] += 300.0 * np.array([0.78, -0.62, 0.0])
+    write_scene(scene, tmp_path / "scene")
+    assert farthest_pose_index(scene.motion) == index
+    pipeline = motion_run.build_pipeline(str(tmp_path / "scene"), {"Iterations": 5})
+    path = poses_picture(pipeline, index, tmp_path / "poses.png")
+    assert picture_is_not_blank(path)
+    assert cut_off_pixels(path) == [0, 0, 0]
