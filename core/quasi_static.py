@@ -1,48 +1,50 @@
 """Quasi-static solver: the static equilibrium of the muscles' mass-spring model with contacts.
 
 The paper's relaxation (:mod:`muscle_mss.core.solver`) stops after a fixed number of explicit
-iterations, far from rest. This method solves for the state in which every free particle's
-forces balance: the springs (Hooke, :func:`muscle_mss.core.mss.spring_forces`), each muscle's
-volume pressure (:func:`muscle_mss.core.mss.mss_steps`'s ``bulk_modulus`` term), the tendon
-attachments held at their posed positions, and the contacts between the spheres of different
-muscles and between muscle and bone spheres (the same detection and response as the paper
-method, :func:`muscle_mss.core.solver._collide`). Masses, damping and drag play no part in a
-static equilibrium.
+iterations, far from rest. This method minimises the model's energy over the free particles
+(tendon particles stay at their posed positions); at the minimum every free particle's forces
+balance. Masses, damping and drag play no part in a static equilibrium.
 
-Energy. ``E(x) = sum_springs k (|x_b - x_a| - L0)^2 / 2 + sum_muscles B V0 (V / V0 - 1)^2 / 2
-+ w sum_spheres |p_i(x)|^2 / 2`` where ``p_i`` is the paper's response of sphere ``i`` (its
-share of the penetration along the centre line, one push per other object): a contact is a
-penalty of stiffness ``w`` (g/s^2) pulling a penetrating sphere towards its contact-resolved
-position, so the force on it is ``w p_i``. The penalty leaves an overlap of (contact force) / w
-at equilibrium; the final collision passes of the paper method (:func:`solver._project`)
-remove it.
+Energy (g mm^2 / s^2)::
 
-Iteration (local/global, Liu et al. 2013 and Bouaziz et al. 2014 without the inertia term).
-The constant matrix ``A = L + w D`` — ``L`` the spring Laplacian weighted by stiffness, ``D``
-one on every particle carrying a collision sphere, rows and columns of the fixed particles
-removed — is factorised once per topology (scipy ``splu``; block diagonal, one block per
-muscle) and kept on the :class:`~muscle_mss.core.solver.PreparedModel`. One step is
-``x <- x + A^-1 g(x)`` on the free particles, ``g`` the total force above (springs, volume,
-contact pulls): for the springs this is exactly the local step (each spring's rest-length
-direction) followed by the global solve, since ``L x + f_springs(x)`` is the global step's
-right-hand side; the contact term's target is the contact-resolved position of a penetrating
-sphere and the current position of every other sphere, so the matrix never changes when
-contacts come and go. The fixed point is the equilibrium ``g(x) = 0``. The volume term's
-whole-cage mode, stiff at the default BulkModulus and absent from ``A``, is added to ``A`` as a
-rank-one update per muscle at the current state (:func:`_with_volume_stiffness`).
+    E(x) = sum_springs k (|x_b - x_a| - L0)^2 / 2                 (Hooke, as mss.spring_forces)
+         + sum_muscles B V0 (V / V0 - 1)^2 / 2                    (volume pressure, BulkModulus B)
+         + w / 2 sum_pairs max(0, r_i + r_j - |c_i - c_j|)^2      (contacts)
 
-Acceleration. Anderson acceleration (Peng et al. 2018) over the last :attr:`history` steps,
-restarted when the set of colliding spheres changes (the map's pieces change there) and
-safeguarded: an accelerated point whose step is longer than the step before it is dropped for
-the plain step, and the history restarts.
+The contact term is a penalty on every overlapping pair of spheres of different muscles and of
+a muscle sphere with a bone sphere (tendon spheres against bones are exempt, as in the paper):
+each sphere of an overlapping pair is pushed along the centre line by ``w`` times the overlap,
+the whole push going to the free sphere when the other is fixed or a bone. Unlike the paper's
+response (the deepest pair of each other object) the sum over all pairs is continuously
+differentiable, so the minimisation converges where the paper's rule makes contacts chatter.
+``w`` is :attr:`QuasiStaticSettings.contact_weight` times the largest sum of one particle's
+spring stiffnesses (260 g/s^2 for a lattice-26 particle at the Spring Builder's defaults). The
+penalty leaves an overlap of (contact force) / w at the minimum; the final collision passes of
+the paper method (:func:`muscle_mss.core.solver._project`) remove it.
 
-Termination by residual: the largest particle move of a plain step (mm; ``A^-1 g``, the
-distance the step would move the farthest particle) and the distance still to go estimated
-from its decay rate (:func:`_settled`) both below ``tolerance`` stop the loop, then
-the final collision passes run; the solve has converged when the move was below the tolerance
-and the passes left no overlap above ``penetration_tolerance``. ``iterations`` caps the loop
-and ``time_budget`` (when set) bounds its wall-clock seconds. Warm start: ``start`` positions
-(e.g. the solution of a neighbouring time point carried by the pose change) replace the posed
+Minimisation: L-BFGS (Liu, Bouaziz and Kavan 2017, "Quasi-Newton methods for real-time
+simulation of hyperelastic materials") with the constant matrix ``A = L + w D`` as the initial
+inverse Hessian — ``L`` the spring Laplacian weighted by stiffness, ``D`` one on every particle
+carrying a collision sphere, fixed particles' rows and columns removed, factorised once per
+topology (one banded Cholesky factor per muscle, :class:`Preconditioner`) — plus each muscle's
+rank-one volume stiffness ``(B / V0) g g^T``, ``g = dV/dx`` at the current state
+(Sherman-Morrison). A step of ``A^-1`` alone is the local/global step of Liu et al. 2013; the
+history of the last :attr:`~QuasiStaticSettings.history` steps corrects it towards Newton's.
+A backtracking line search (Armijo) makes every iteration lower the energy, and a step moves no
+particle farther than the largest muscle sphere radius (a step through a bone's sphere shell
+would jump over its contact). Contacts are found from candidate lists (spheres of other objects
+within their radii plus a skin, :func:`muscle_mss.core.spatial_hash.candidate_lists`) rebuilt
+whenever a sphere has moved half the skin since: the energy is that of all overlapping pairs.
+
+Termination by residual: the residual of an iteration is the largest particle move of its
+quasi-Newton step (mm, before the line search), the L-BFGS estimate of the distance to the
+minimum. The loop stops when it is below ``tolerance`` and so is the distance still to go
+estimated from its decay (:func:`_settled`), and the plain preconditioned step ``(A + K)^-1
+grad E`` is below ``tolerance`` as well (it bounds the force: ``|f| <= |A + K| tolerance``);
+then the final collision passes run. The solve has converged when the loop stopped so and
+the passes left no overlap above ``penetration_tolerance``. ``iterations`` caps the loop and
+``time_budget`` (when set) bounds its wall-clock seconds. Warm start: ``start`` positions (e.g.
+the solution of a neighbouring time point carried by the pose change) replace the posed
 positions of the free particles.
 """
 from __future__ import annotations
@@ -51,28 +53,34 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg as linalg
 import scipy.sparse as sparse
-import scipy.sparse.linalg as sparse_linalg
 from numba import njit, prange
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from . import solver as S
+from . import spatial_hash
 from .errors import MuscleMSSError
-from .mss import _add_cage_gradient, _muscle_forces, _volume_forces
+from .mss import _add_cage_gradient, _cage_volume
 
-DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a step
-DEFAULT_HISTORY = 5             # Anderson acceleration depth
+DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a quasi-Newton step
+DEFAULT_HISTORY = 8             # L-BFGS pairs kept
 # The contact stiffness w as a multiple of the largest diagonal entry of L (the sum of the
 # stiffnesses of one particle's springs, 260 g/s^2 for a lattice-26 particle at the Spring
-# Builder's 10 g/s^2): stiffer contacts leave less overlap for the final passes but make
-# every sphere's row of A stiffer, which slows the free boundary particles down.
-DEFAULT_CONTACT_WEIGHT = 1.0
+# Builder's 10 g/s^2). Stiffer contacts leave less overlap for the final passes but are stiff
+# modes the Laplacian preconditioner does not know: on the full demo thigh at N = 20, walking
+# pose, 1.0 did not converge in 500 iterations, 0.3 converged in 398 (deepest overlap left for
+# the passes 0.19 mm); 0.1 and 0.03 did not converge either (more contacts slide).
+DEFAULT_CONTACT_WEIGHT = 0.3
 METHOD = "quasi-static"
-# Anderson history restarts when more than this fraction of the colliding spheres changed
-# (0: any change). On the full demo 0.05, or never restarting, left the residual stalled just
-# the same (the contact chatter, see the README), so the safe choice stays.
-RESTART_FRACTION = 0.0
-RATE_WINDOW = 5
-REST_STEP = 1e-12        # mm
+ARMIJO = 1e-4                   # sufficient decrease of the line search
+BACKTRACKS = 40                 # line search halvings before the solve gives up
+# Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
+# fraction of the energy is rounding, not an increase (the last steps of a tight solve).
+ENERGY_ROUNDING = 1e-13
+RATE_WINDOW = 10                # iterations over which the residual's decay is measured
+REST_STEP = 1e-12               # mm: a residual below it is rest (rounding of mm coordinates)
+SKIN_FRACTION = 1.0             # contact list skin, times the mean muscle sphere radius
 
 
 @dataclass
@@ -83,7 +91,7 @@ class QuasiStaticSettings:
     iterations: int = 500                           # cap
     time_budget: float | None = None                # s, None: no budget
     bulk_modulus: float = S.DEFAULT_BULK_MODULUS    # g/(mm s^2)
-    structure: str = "spatial hash"
+    structure: str = "spatial hash"                 # of the final collision passes
     bvh_max_depth: int = S.octree_bvh.MAX_DEPTH
     bvh_min_primitives: int = S.octree_bvh.MIN_PRIMITIVES
     muscle_muscle: bool = True
@@ -97,175 +105,337 @@ class QuasiStaticSettings:
 @dataclass
 class QuasiStaticResult(S.SolveResult):
     """:class:`~muscle_mss.core.solver.SolveResult` plus ``residual`` (K,) mm, the largest
-    particle move of each iteration's plain step, and ``converged``: the last residual below
-    the tolerance and no overlap above the penetration tolerance after the final passes.
-    ``velocity`` is zero (a static solution); ``mean_displacement`` (K, M) is each muscle's
-    mean particle move of the plain step."""
+    particle move of each iteration's quasi-Newton step, ``energy`` (K,) g mm^2/s^2 at the start
+    of each iteration, and ``converged``: the loop met the tolerance and the final passes left
+    no overlap above the penetration tolerance. ``velocity`` is zero (a static solution);
+    ``mean_displacement`` (K, M) is each muscle's mean particle move of the iteration (fixed
+    particles count as not moving); ``muscle_pairs``, ``bone_pairs`` and ``max_penetration``
+    the overlapping pairs and the deepest overlap (mm) at the start of each iteration."""
 
     residual: np.ndarray | None = None
+    energy: np.ndarray | None = None
     converged: bool = False
     method: str = METHOD
 
 
+# ---- the constant part of the Hessian ----------------------------------------------------------
+
 @dataclass
-class Factor:
-    """The constant matrix of the global step, factorised: ``free`` (f,) the free particles
-    (solver order), ``lu`` scipy's ``SuperLU`` of ``A`` (f x f), ``weight`` w (g/s^2)."""
+class Preconditioner:
+    """The spring Laplacian ``L`` on the free particles, factorised muscle by muscle.
+
+    ``free`` (f,) the free particles (solver order); ``blocks`` per muscle ``(rows, factor)``:
+    ``rows`` (k,) positions in ``free`` in the factor's order (the smaller bandwidth of the
+    particles ordered slice by slice along the fibres and of reverse Cuthill-McKee), ``factor``
+    the lower banded Cholesky factor (LAPACK layout); ``stiffest`` (g/s^2) the largest sum of
+    one particle's spring stiffnesses (the contact stiffness's unit); ``bandwidth`` the largest
+    block's."""
 
     free: np.ndarray
-    lu: object
-    weight: float
+    blocks: list
+    stiffest: float
+    bandwidth: int
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """``A^-1 rhs`` for ``rhs`` (f, c)."""
+        out = np.empty_like(rhs)
+        for rows, factor_ in self.blocks:
+            out[rows] = linalg.cho_solve_banded((factor_, True), rhs[rows], check_finite=False)
+        return out
 
 
-def global_matrix(prep: S.PreparedModel, weight: float):
-    """``A = L + weight D`` restricted to the free particles (see the module docstring), CSC,
-    with the free particles' indices (solver order)."""
-    springs, stiffness = _springs(prep)
+def _springs(model: S.MSSModel, prep: S.PreparedModel):
+    """Every spring's ends (solver order), rest length and stiffness, grouped by muscle:
+    ``(ends (S, 2), rest (S,), stiffness (S,), ptr (M + 1,))``."""
+    rank = np.empty(len(prep.order), dtype=np.int64)
+    rank[prep.order] = np.arange(len(prep.order))
+    ends = rank[np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)]
+    muscle = prep.muscle[ends[:, 0]]
+    order = np.argsort(muscle, kind="stable")
+    ptr = np.searchsorted(muscle[order], np.arange(len(prep.offsets))).astype(np.int64)
+    return (np.ascontiguousarray(ends[order]),
+            np.asarray(model.rest_length, dtype=np.float64)[order].copy(),
+            np.asarray(model.stiffness, dtype=np.float64)[order].copy(), ptr)
+
+
+def _bandwidth(matrix, order) -> int:
+    coo = matrix.tocoo()
+    place = np.empty(len(order), dtype=np.int64)
+    place[order] = np.arange(len(order))
+    return int(np.abs(place[coo.row] - place[coo.col]).max(initial=0))
+
+
+def preconditioner(model: S.MSSModel, prep: S.PreparedModel) -> Preconditioner:
+    """The factorised ``L`` for ``prep``'s topology, cached on ``prep``. A muscle whose free
+    particles are not all joined to a fixed particle through springs would float: the solve
+    refuses it."""
+    key = "quasi-static preconditioner"
+    if key in prep.cache:
+        return prep.cache[key]
+    ends, _, stiffness, _ = model_springs(model, prep)
     n = int(prep.offsets[-1])
-    a, b = springs[:, 0], springs[:, 1]
+    diagonal = np.bincount(ends.ravel(), np.repeat(stiffness, 2), minlength=n)
+    stiffest = float(diagonal.max(initial=0.0) or 1.0)
+    a, b = ends[:, 0], ends[:, 1]
     lap = sparse.coo_matrix(
         (np.concatenate([stiffness, stiffness, -stiffness, -stiffness]),
          (np.concatenate([a, b, a, b]), np.concatenate([a, b, b, a]))), shape=(n, n)).tocsr()
-    sphere = prep.boundary & (prep.radius > 0.0)
     free = np.flatnonzero(~prep.fixed)
-    matrix = (lap + sparse.diags(np.where(sphere, weight, 0.0)))[free][:, free]
-    return matrix.tocsc(), free
-
-
-def _springs(prep: S.PreparedModel):
-    """Every spring's ends (solver order) and stiffness, from the prepared layout."""
-    lay = prep.layout
-    ends, stiffness = [lay.scattered_int], [lay.scattered_param[:, 1]]
-    for r in range(len(lay.runs_int)):
-        first, lanes, d, lane0 = lay.runs_int[r]
-        present = np.flatnonzero(lay.lane_rest[lane0:lane0 + lanes] >= 0.0)
-        a = first + present
-        ends.append(np.stack([a, a + d], axis=1))
-        stiffness.append(np.full(len(a), lay.runs_param[r, 0]))
-    return np.concatenate(ends).astype(np.int64), np.concatenate(stiffness)
-
-
-def factor(prep: S.PreparedModel, contact_weight: float = DEFAULT_CONTACT_WEIGHT) -> Factor:
-    """The factorised global matrix for ``prep``'s topology, cached on ``prep`` per contact
-    weight (a muscle without a fixed particle and without springs to one is singular: it
-    floats, and the solve refuses it)."""
-    key = ("quasi-static factor", float(contact_weight))
-    if key in prep.cache:
-        return prep.cache[key]
-    springs, stiffness = _springs(prep)
-    n = int(prep.offsets[-1])
-    diagonal = np.bincount(springs.ravel(), np.repeat(stiffness, 2), minlength=n)
-    weight = float(contact_weight) * float(diagonal.max(initial=0.0) or 1.0)
-    matrix, free = global_matrix(prep, weight)
-    try:
-        lu = sparse_linalg.splu(matrix, permc_spec="MMD_AT_PLUS_A")
-    except RuntimeError as err:
-        raise MuscleMSSError(
-            f"the quasi-static solver cannot factorise the spring system ({err}): a muscle "
-            "has free particles joined to no fixed particle through springs (it would float "
-            "away); fix its tendon ends or use the paper relaxation") from None
-    result = Factor(free, lu, weight)
+    matrix = lap[free][:, free].tocsr()
+    along = np.asarray(model.fibre_index).ravel()[prep.order][free]
+    free_muscle = prep.muscle[free]
+    blocks, widest = [], 0
+    for m in range(len(prep.offsets) - 1):
+        rows = np.flatnonzero(free_muscle == m)
+        if not len(rows):
+            continue
+        block = matrix[rows][:, rows]
+        candidates = [np.lexsort((np.arange(len(rows)), along[rows])),
+                      np.asarray(reverse_cuthill_mckee(block, symmetric_mode=True), np.int64)]
+        widths = [_bandwidth(block, c) for c in candidates]
+        order = candidates[int(np.argmin(widths))]
+        width = min(widths)
+        ordered = block[order][:, order].tocoo()
+        keep = ordered.row >= ordered.col
+        banded = np.zeros((width + 1, len(rows)))
+        banded[(ordered.row - ordered.col)[keep], ordered.col[keep]] = ordered.data[keep]
+        try:
+            factor_ = linalg.cholesky_banded(banded, lower=True, check_finite=False)
+        except linalg.LinAlgError:
+            raise MuscleMSSError(
+                f"the quasi-static solver cannot factorise the springs of muscle "
+                f"'{model.names[m]}': some of its free particles are joined to no fixed "
+                "particle through springs (they would float away); fix its tendon ends or use "
+                "the paper relaxation") from None
+        blocks.append((rows[order], factor_))
+        widest = max(widest, width)
+    result = Preconditioner(free, blocks, stiffest, widest)
     prep.cache[key] = result
     return result
+
+
+def model_springs(model: S.MSSModel, prep: S.PreparedModel):
+    """:func:`_springs`, cached on ``prep`` (the topology's)."""
+    key = "quasi-static springs"
+    if key not in prep.cache:
+        prep.cache[key] = _springs(model, prep)
+    return prep.cache[key]
 
 
 # ---- kernels ---------------------------------------------------------------------------------
 
 @njit(cache=True, parallel=True)
-def _forces_and_gather(x, still, force, scratch, gradient, bulk_modulus, cage_ptr,
-                       cage_triangles, rest_volume, offsets, runs_int, runs_param, lane_rest,
-                       run_ptr, scattered_int, scattered_param, scattered_ptr, spheres):
-    """Spring and volume forces on every particle into ``force`` (3, n) (``still`` (3, n)
-    zeros: velocities, so the springs' damping adds nothing), each muscle's cage volume
-    gradient ``dV/dx`` into ``gradient`` (3, n) (zero off the cages, and everywhere when
-    ``bulk_modulus`` is 0), each muscle's sphere centres gathered for the collision tests —
-    one parallel region over the muscles."""
-    particle, centres, disp, collided, sphere_ptr = (spheres[0], spheres[5], spheres[6],
-                                                     spheres[7], spheres[10])
+def _elastic(x, gradient, volume_gradient, energy, ends, rest, stiffness, spring_ptr,
+             bulk_modulus, cage_ptr, cage_triangles, rest_volume, offsets):
+    """The spring and volume energy of every muscle into ``energy`` (M,), its gradient into
+    ``gradient`` (3, n) (overwritten), each muscle's cage volume gradient ``dV/dx`` into
+    ``volume_gradient`` (3, n) (zero off the cages and when ``bulk_modulus`` is 0), at ``x``
+    (3, n) mm. One parallel region over the muscles (a spring never joins two)."""
     for m in prange(offsets.shape[0] - 1):
-        _muscle_forces(m, x, still, force, scratch, offsets, runs_int, runs_param, lane_rest,
-                       run_ptr, scattered_int, scattered_param, scattered_ptr)
-        _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modulus)
         for axis in range(3):
-            gradient[axis, offsets[m]:offsets[m + 1]] = 0.0
+            for p in range(offsets[m], offsets[m + 1]):
+                gradient[axis, p] = 0.0
+                volume_gradient[axis, p] = 0.0
+        e = 0.0
+        for s in range(spring_ptr[m], spring_ptr[m + 1]):
+            a, b = ends[s, 0], ends[s, 1]
+            dx = x[0, b] - x[0, a]
+            dy = x[1, b] - x[1, a]
+            dz = x[2, b] - x[2, a]
+            length = np.sqrt(dx * dx + dy * dy + dz * dz)
+            stretch = length - rest[s]
+            e += 0.5 * stiffness[s] * stretch * stretch
+            if length > 0.0:
+                f = stiffness[s] * stretch / length
+                gradient[0, b] += f * dx
+                gradient[1, b] += f * dy
+                gradient[2, b] += f * dz
+                gradient[0, a] -= f * dx
+                gradient[1, a] -= f * dy
+                gradient[2, a] -= f * dz
         if bulk_modulus > 0.0 and cage_ptr[m + 1] > cage_ptr[m]:
-            _add_cage_gradient(m, x, gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
-        for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
-            S._gather_sphere(s, x, particle, centres, disp, collided)
+            strain = _cage_volume(m, x, cage_ptr, cage_triangles) / (6.0 * rest_volume[m]) - 1.0
+            e += 0.5 * bulk_modulus * rest_volume[m] * strain * strain
+            _add_cage_gradient(m, x, gradient, bulk_modulus * strain / 6.0, cage_ptr,
+                               cage_triangles)
+            _add_cage_gradient(m, x, volume_gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
+        energy[m] = e
 
 
 @njit(cache=True, parallel=True)
-def _add_pulls(force, weight, particle, disp, collided):
-    """The contact pull ``weight * response`` of every collided sphere added to ``force``."""
-    for s in prange(particle.shape[0]):
-        if collided[s]:
-            p = particle[s]
-            for axis in range(3):
-                force[axis, p] += weight * disp[axis, s]
+def _contacts(x, gradient, weight, particle, radius, fixed, mm_begin, mm_end, mm_idx,
+              mb_begin, mb_end, mb_idx, bone_centres, bone_radius, sphere_energy, overlaps,
+              deepest):
+    """The contact penalty of every muscle sphere against the spheres in its candidate lists
+    (``mm_*`` other muscles' spheres, ``mb_*`` bone spheres, CSR as
+    :func:`~muscle_mss.core.spatial_hash.candidate_lists`): its gradient added to ``gradient``
+    (3, n) at the sphere's particle (a free sphere only), per sphere the energy of its pairs
+    (a muscle pair counted by its lower sphere) into ``sphere_energy`` (s,), the overlapping
+    pairs into ``overlaps`` (s, 2) (muscle, bone; a muscle pair by its lower sphere) and the
+    deepest overlap of its pairs into ``deepest`` (s,) (0: it touches nothing). Sphere ``i``
+    writes only its own entries."""
+    for i in prange(particle.shape[0]):
+        p = particle[i]
+        xi, yi, zi = x[0, p], x[1, p], x[2, p]
+        gx, gy, gz = 0.0, 0.0, 0.0
+        e = 0.0
+        n_mm, n_mb = 0, 0
+        worst = 0.0
+        for k in range(mm_begin[i], mm_end[i]):
+            j = mm_idx[k]
+            q = particle[j]
+            dx, dy, dz = xi - x[0, q], yi - x[1, q], zi - x[2, q]
+            d = np.sqrt(dx * dx + dy * dy + dz * dz)
+            pen = radius[i] + radius[j] - d
+            if pen > 0.0 and not (fixed[i] and fixed[j]):
+                worst = max(worst, pen)
+                if j > i:
+                    e += 0.5 * weight * pen * pen
+                    n_mm += 1
+                if d > 0.0:
+                    gx -= weight * pen * dx / d
+                    gy -= weight * pen * dy / d
+                    gz -= weight * pen * dz / d
+        if not fixed[i]:
+            for k in range(mb_begin[i], mb_end[i]):
+                j = mb_idx[k]
+                dx = xi - bone_centres[0, j]
+                dy = yi - bone_centres[1, j]
+                dz = zi - bone_centres[2, j]
+                d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                pen = radius[i] + bone_radius[j] - d
+                if pen > 0.0:
+                    e += 0.5 * weight * pen * pen
+                    n_mb += 1
+                    worst = max(worst, pen)
+                    if d > 0.0:
+                        gx -= weight * pen * dx / d
+                        gy -= weight * pen * dy / d
+                        gz -= weight * pen * dz / d
+        if not fixed[i]:
+            gradient[0, p] += gx
+            gradient[1, p] += gy
+            gradient[2, p] += gz
+        sphere_energy[i] = e
+        overlaps[i, 0] = n_mm
+        overlaps[i, 1] = n_mb
+        deepest[i] = worst
 
 
-@njit(cache=True, parallel=True)
-def _muscle_moves(step, free, muscle, n_muscles, out):
-    """Mean particle move (mm) of each muscle for ``step`` (f, 3) on the free particles
-    (fixed particles count as not moving); returns the largest move."""
-    f = free.shape[0]
-    length = np.empty(f)
-    for i in prange(f):
-        length[i] = np.sqrt(step[i, 0] ** 2 + step[i, 1] ** 2 + step[i, 2] ** 2)
-    for m in range(n_muscles):
-        out[m] = 0.0
-    largest = 0.0
-    for i in range(f):
-        out[muscle[free[i]]] += length[i]
-        largest = max(largest, length[i])
-    return largest
+@njit(cache=True)
+def _moved_more(x, particle, built, limit):
+    """Whether a sphere's particle is farther than ``limit`` mm from ``built`` (3, s)."""
+    for i in range(particle.shape[0]):
+        p = particle[i]
+        d2 = 0.0
+        for axis in range(3):
+            d2 += (x[axis, p] - built[axis, i]) ** 2
+        if not d2 <= limit * limit:
+            return True
+    return False
+
+
+# ---- the energy --------------------------------------------------------------------------------
+
+class _Energy:
+    """The energy of one posed model as a function of the free particles' positions, with the
+    contact candidate lists it keeps up to date (see the module docstring)."""
+
+    def __init__(self, model, prep, pre: Preconditioner, spheres, settings, x, weight):
+        self.prep, self.pre, self.weight = prep, pre, weight
+        self.x = x                                  # (3, n) mm, fixed particles posed
+        self.free = pre.free
+        n = x.shape[1]
+        self.gradient = np.zeros((3, n))
+        self.volume_gradient = np.zeros((3, n))
+        self.muscle_energy = np.zeros(len(prep.offsets) - 1)
+        self.springs = model_springs(model, prep)
+        self.bulk_modulus = float(settings.bulk_modulus)
+        self.spheres = spheres
+        ns = spheres.count
+        self.muscle_muscle = bool(settings.muscle_muscle)
+        self.muscle_bone = bool(settings.muscle_bone) and len(spheres.bone_radius) > 0
+        self.skin = SKIN_FRACTION * float(spheres.radius.mean()) if ns else 0.0
+        self.sphere_energy = np.zeros(ns)
+        self.overlaps = np.zeros((ns, 2), dtype=np.int64)
+        self.deepest = np.zeros(ns)
+        self.built = np.zeros((3, ns))
+        self.bone_table = None
+        if self.muscle_bone:
+            self.bone_table = spatial_hash.grid_table(
+                spheres.bone_centres, spheres.bone_radius,
+                spatial_hash.bone_cell(spheres, self.skin), spheres.bone + spheres.n_muscles)
+        none = np.zeros(ns, dtype=np.int64)
+        self.mm = self.mb = (none, none, np.zeros(0, dtype=np.int64))
+        self.lists_built = False
+        self.rebuilds = 0
+        self.seconds = np.zeros(3)       # elastic, muscle contacts, bone contacts
+
+    def _refresh_lists(self):
+        """Rebuild the contact candidate lists when a sphere moved half the skin."""
+        sp = self.spheres
+        if not sp.count or not (self.muscle_muscle or self.muscle_bone):
+            return
+        if self.lists_built and not _moved_more(self.x, sp.particle, self.built,
+                                                0.5 * self.skin):
+            return
+        self.built[:] = self.x[:, sp.particle]
+        tick = time.perf_counter()
+        if self.muscle_muscle:
+            table = spatial_hash.grid_table(self.built, sp.radius,
+                                            spatial_hash.muscle_cell(sp, self.skin), sp.muscle)
+            self.mm = spatial_hash.candidate_lists(self.built, sp.radius, sp.muscle, table,
+                                                   self.skin)
+        tock = time.perf_counter()
+        if self.muscle_bone:
+            self.mb = spatial_hash.candidate_lists(self.built, sp.radius, sp.muscle,
+                                                   self.bone_table, self.skin)
+        self.seconds[1] += tock - tick
+        self.seconds[2] += time.perf_counter() - tock
+        self.lists_built = True
+        self.rebuilds += 1
+
+    def evaluate(self, free_positions):
+        """Set the free particles to ``free_positions`` (f, 3) and return ``(energy, gradient
+        (f, 3), volume gradient (f, 3))``; the contact statistics stay on the object."""
+        self.x[:, self.free] = free_positions.T
+        tick = time.perf_counter()
+        springs = self.springs
+        cages = self.prep.cages
+        _elastic(self.x, self.gradient, self.volume_gradient, self.muscle_energy, springs[0],
+                 springs[1], springs[2], springs[3], self.bulk_modulus, cages.ptr,
+                 cages.triangles, cages.rest_volume, self.prep.offsets)
+        self.seconds[0] += time.perf_counter() - tick
+        self._refresh_lists()
+        tick = time.perf_counter()
+        sp = self.spheres
+        if sp.count:
+            _contacts(self.x, self.gradient, self.weight, sp.particle, sp.radius, sp.fixed,
+                      *self.mm, *self.mb, sp.bone_centres, sp.bone_radius, self.sphere_energy,
+                      self.overlaps, self.deepest)
+        self.seconds[1] += time.perf_counter() - tick
+        energy = float(self.muscle_energy.sum() + self.sphere_energy.sum())
+        return (energy, np.ascontiguousarray(self.gradient[:, self.free].T),
+                np.ascontiguousarray(self.volume_gradient[:, self.free].T))
+
+    def contact_figures(self):
+        """``(muscle pairs, bone pairs, deepest overlap mm)`` at the last evaluation."""
+        totals = self.overlaps.sum(axis=0)
+        return int(totals[0]), int(totals[1]), float(self.deepest.max(initial=0.0))
 
 
 # ---- the driver ------------------------------------------------------------------------------
-
-def _with_volume_stiffness(delta, fac: Factor, gradient, free_muscle, volume_stiffness):
-    """Turn the step ``delta = A^-1 f`` (f, 3) into ``(A + K)^-1 f`` in place, ``K`` the volume
-    energy's stiff part, ``(BulkModulus / V_rest) g g^T`` per muscle with ``g = dV/dx``
-    (``gradient`` (f, 3) on the free particles). ``A`` alone leaves that whole-cage mode out:
-    at BulkModulus 50 a step of ``A^-1 f`` overshoots it and the iteration diverges. Sherman-
-    Morrison per muscle (``A`` is block diagonal): ``delta - A^-1 g c (g . delta) / (1 + c
-    g . A^-1 g)``, one more solve with ``A`` for all muscles at once."""
-    solved = fac.lu.solve(gradient)
-    n_muscles = len(volume_stiffness)
-    along = np.bincount(free_muscle, np.einsum("ij,ij->i", gradient, delta), minlength=n_muscles)
-    self_ = np.bincount(free_muscle, np.einsum("ij,ij->i", gradient, solved),
-                        minlength=n_muscles)
-    scale = volume_stiffness * along / (1.0 + volume_stiffness * self_)
-    delta -= solved * scale[free_muscle, None]
-
-
-def _settled(residual, tolerance) -> bool:
-    """Whether the iteration has reached the tolerance: the last step moved no particle more
-    than ``tolerance`` (mm) and neither does the distance still to go, estimated as
-    ``r rho / (1 - rho)`` with ``rho`` the mean decay of the step over the last
-    :data:`RATE_WINDOW` steps (a step shrinking by ``rho`` per iteration has that much left in
-    its geometric tail; a step alone understates it by ``1 / (1 - rho)``, 65 times on a
-    stretched lattice). A step below :data:`REST_STEP` is rest (rounding of mm coordinates)."""
-    last = residual[-1]
-    if last < REST_STEP:
-        return True
-    if len(residual) < 2 or not last < tolerance:
-        return False
-    window = min(RATE_WINDOW, len(residual) - 1)
-    rate = (last / residual[-1 - window]) ** (1.0 / window)
-    return rate < 1.0 and last * rate / (1.0 - rate) < tolerance
 
 def _check(settings: QuasiStaticSettings) -> None:
     if settings.structure not in S.STRUCTURES:
         raise MuscleMSSError(f"collision structure {settings.structure!r} is not one of "
                              f"{', '.join(S.STRUCTURES)}")
-    if not (settings.iterations >= 1 and int(settings.iterations) == settings.iterations):
-        raise MuscleMSSError(f"solver iterations is {settings.iterations}; it must be a whole "
-                             "number, 1 or more")
-    if not (settings.projection_passes >= 0
-            and int(settings.projection_passes) == settings.projection_passes):
-        raise MuscleMSSError(f"solver projection passes is {settings.projection_passes}; it "
-                             "must be a whole number, 0 or more")
+    for name, value, least in (("iterations", settings.iterations, 1),
+                               ("projection passes", settings.projection_passes, 0),
+                               ("history", settings.history, 0)):
+        if not (value >= least and int(value) == value):
+            raise MuscleMSSError(f"solver {name} is {value}; it must be a whole number, "
+                                 f"{least} or more")
     for name, value in (("tolerance", settings.tolerance),
                         ("penetration tolerance", settings.penetration_tolerance),
                         ("bulk modulus", settings.bulk_modulus)):
@@ -279,6 +449,75 @@ def _check(settings: QuasiStaticSettings) -> None:
                              "more")
 
 
+def _largest_move(step) -> float:
+    """The largest particle move (mm) of ``step`` (f, 3)."""
+    return float(np.sqrt(np.einsum("ij,ij->i", step, step).max(initial=0.0)))
+
+
+class _Hessian0:
+    """``(A + K)^-1`` at one state: ``A`` the :class:`Preconditioner`, ``K`` each muscle's
+    rank-one volume stiffness ``(B / V0) g g^T`` for the volume gradient ``g`` (f, 3) of that
+    state (Sherman-Morrison per muscle, ``A`` being block diagonal). ``A`` alone leaves the
+    volume term's stiff whole-cage mode out: at BulkModulus 50 its steps overshoot that mode
+    many times."""
+
+    def __init__(self, pre: Preconditioner, free_muscle, volume_stiffness, volume_gradient):
+        self.pre, self.free_muscle, self.c = pre, free_muscle, volume_stiffness
+        self.g = volume_gradient
+        self.solved_g = None
+        self.self_term = None
+
+    def __call__(self, rhs):
+        if not self.c.any():
+            return self.pre.solve(rhs)
+        if self.solved_g is None:
+            both = self.pre.solve(np.concatenate([rhs, self.g], axis=1))
+            out, self.solved_g = both[:, :3], both[:, 3:]
+            self.self_term = np.bincount(self.free_muscle, np.einsum(
+                "ij,ij->i", self.g, self.solved_g), minlength=len(self.c))
+        else:
+            out = self.pre.solve(rhs)
+        along = np.bincount(self.free_muscle, np.einsum("ij,ij->i", self.g, out),
+                            minlength=len(self.c))
+        scale = self.c * along / (1.0 + self.c * self.self_term)
+        out -= self.solved_g * scale[self.free_muscle, None]
+        return out
+
+
+def _settled(residual, tolerance) -> bool:
+    """Whether the distance still to go, estimated as ``r rho / (1 - rho)`` with ``r`` the last
+    residual and ``rho`` its mean decay per iteration over the last :data:`RATE_WINDOW`
+    iterations, is below ``tolerance`` (mm). A step shrinking by ``rho`` per iteration has that
+    much left in its geometric tail: the last step alone understated the distance to the
+    minimum 50 times on the small demo (a solve stopped at 0.01 mm ended 0.55 mm from one
+    started elsewhere). A residual below :data:`REST_STEP` is rest."""
+    last = residual[-1]
+    if last < REST_STEP:
+        return True
+    if len(residual) < 2:
+        return False
+    window = min(RATE_WINDOW, len(residual) - 1)
+    rate = (last / residual[-1 - window]) ** (1.0 / window)
+    return rate < 1.0 and last * rate / (1.0 - rate) < tolerance
+
+
+def _direction(gradient, history, h0):
+    """The L-BFGS step ``-H gradient`` (f, 3) (two-loop recursion, Nocedal and Wright
+    algorithm 7.4) for ``history`` [(s, y, 1 / y.s)] oldest first and the initial inverse
+    Hessian ``h0``."""
+    q = gradient.copy()
+    alphas = []
+    for s, y, rho in reversed(history):
+        a = rho * np.vdot(s, q)
+        q -= a * y
+        alphas.append(a)
+    r = h0(q)
+    for (s, y, rho), a in zip(history, reversed(alphas)):
+        b = rho * np.vdot(y, r)
+        r += (a - b) * s
+    return -r
+
+
 def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
           settings: QuasiStaticSettings | None = None, progress=None,
           prepared: S.PreparedModel | None = None, start=None) -> QuasiStaticResult:
@@ -290,151 +529,153 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     """
     settings = settings or QuasiStaticSettings()
     _check(settings)
+    S.check_history_size(settings.iterations, len(model.names))
     prep = prepared if prepared is not None else S.prepare(model)
-    fac = factor(prep, settings.contact_weight)
+    pre = preconditioner(model, prep)
     offsets = prep.offsets
     n = int(offsets[-1])
     n_muscles = len(offsets) - 1
     posed = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)[prep.order]
     x = np.ascontiguousarray(posed.T)
+    free = pre.free
     if start is not None:
         begin = np.asarray(start, dtype=np.float64).reshape(-1, 3)
         if begin.shape != (n, 3) or not np.isfinite(begin).all():
             raise MuscleMSSError(f"the solver's start positions must be {n} finite points; got "
                                  f"shape {begin.shape}")
-        begin = begin[prep.order]
-        x[:, fac.free] = begin[fac.free].T
-    still = np.zeros_like(x)
-    force = np.zeros_like(x)
-    scratch = np.zeros_like(x)
-    gradient = np.zeros_like(x)
-    free = fac.free
+        x[:, free] = begin[prep.order][free].T
     free_muscle = prep.muscle[free]
-    volume_stiffness = float(settings.bulk_modulus) / prep.cages.rest_volume   # (M,) g/(mm^4 s^2)
-
+    has_cage = np.diff(prep.cages.ptr) > 0
+    volume_stiffness = np.where(has_cage, float(settings.bulk_modulus)
+                                / prep.cages.rest_volume, 0.0)     # (M,) g/(mm^4 s^2)
     spheres, sphere_state = S.collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
-    use_bvh = settings.structure == "octree BVH"
-    hashed = S._hash_state(spheres, not use_bvh)
-    bvh = S._bvh_state(spheres, S.SolverSettings(
-        structure=settings.structure, bvh_max_depth=settings.bvh_max_depth,
-        bvh_min_primitives=settings.bvh_min_primitives))
-    fixed_state, lists = hashed[:-5], hashed[-5:]
-    mss = (float(settings.bulk_modulus),) + prep.cages.arrays + (offsets,) + prep.layout.arrays
-    collided = sphere_state[7]
-    muscle_cd, bone_cd = bool(settings.muscle_muscle), bool(settings.muscle_bone)
+    energy_of = _Energy(model, prep, pre, spheres, settings, x,
+                        float(settings.contact_weight) * pre.stiffest)
+    step_limit = float(spheres.radius.max()) if ns else np.inf
+    sizes = np.maximum(np.diff(offsets), 1)
 
     cap = int(settings.iterations)
     residual = np.zeros(cap)
+    energies = np.zeros(cap)
     mean_move = np.zeros((cap, n_muscles))
     muscle_pairs = np.zeros(cap, dtype=np.int64)
     bone_pairs = np.zeros(cap, dtype=np.int64)
     max_pen = np.zeros(cap)
     seconds = np.zeros(cap)
-    phases = np.zeros(4)
-    sizes = np.maximum(np.diff(offsets), 1)
-
-    def step(state, lists):
-        """The plain step at ``state`` (3, n): ``(A^-1 g (f, 3), largest move, lists,
-        pairs...)``."""
-        tick = time.perf_counter()
-        _forces_and_gather(state, still, force, scratch, gradient, *mss, sphere_state)
-        mm_count, mb_count, deepest, t_mm, t_mb, _, lists = S._collide(
-            sphere_state, fixed_state, bvh, use_bvh, muscle_cd, bone_cd, lists)
-        _add_pulls(force, fac.weight, spheres.particle, sphere_state[6], collided)
-        delta = fac.lu.solve(np.ascontiguousarray(force[:, free].T))
-        if settings.bulk_modulus > 0.0:
-            _with_volume_stiffness(delta, fac, np.ascontiguousarray(gradient[:, free].T),
-                                   free_muscle, volume_stiffness)
-        phases[0] += time.perf_counter() - tick - t_mm - t_mb
-        phases[1] += t_mm
-        phases[2] += t_mb
-        return delta, lists, mm_count, mb_count, deepest
+    solve_seconds = 0.0
 
     started = time.perf_counter()
-    history_x, history_f = [], []
-    contact_set = None
-    previous_move = np.inf
-    fallback = None          # the plain step's result from the last point, for the safeguard
+    position = np.ascontiguousarray(x[:, free].T)
+    energy, gradient, volume_gradient = energy_of.evaluate(position)
+    history = []
     done = 0
     converged_loop = False
     stopped_by = "iterations"
     while done < cap:
-        delta, lists, mm_count, mb_count, deepest = step(x, lists)
-        largest = _muscle_moves(delta, free, prep.muscle, n_muscles, mean_move[done])
+        muscle_pairs[done], bone_pairs[done], max_pen[done] = energy_of.contact_figures()
+        energies[done] = energy
+        tick = time.perf_counter()
+        h0 = _Hessian0(pre, free_muscle, volume_stiffness, volume_gradient)
+        step = _direction(gradient, history, h0)
+        largest = _largest_move(step)
         if not np.isfinite(largest):
             raise MuscleMSSError(f"the quasi-static solve diverged at iteration {done + 1}: a "
                                  "particle's step is not finite; check stiffness and bulk "
                                  "modulus")
-        if fallback is not None and largest > previous_move:
-            # the accelerated point made things worse: take the plain step instead
-            x[:, free] = fallback
-            history_x.clear()
-            history_f.clear()
-            delta, lists, mm_count, mb_count, deepest = step(x, lists)
-            largest = _muscle_moves(delta, free, prep.muscle, n_muscles, mean_move[done])
-        mean_move[done] /= sizes
         residual[done] = largest
-        muscle_pairs[done] = mm_count
-        bone_pairs[done] = mb_count
-        max_pen[done] = deepest
-        seconds[done] = time.perf_counter() - started
+        if largest <= settings.tolerance and not _settled(residual[:done + 1],
+                                                          settings.tolerance):
+            largest = max(largest, 2.0 * settings.tolerance)    # not yet: keep going
+        elif largest <= settings.tolerance and history:
+            # confirm with the plain step, which bounds the force
+            plain = -h0(gradient)
+            if _largest_move(plain) > settings.tolerance:
+                history.clear()
+                step, largest = plain, _largest_move(plain)
+        slope = float(np.vdot(gradient, step))
+        if slope >= 0.0 and largest > 0.0:
+            history.clear()
+            step = -h0(gradient)
+            largest = _largest_move(step)
+            slope = float(np.vdot(gradient, step))
+        solve_seconds += time.perf_counter() - tick
         done += 1
-        current = x[:, free].T.ravel()
-        plain = current + delta.ravel()
-        if _settled(residual[:done], settings.tolerance):
-            x[:, free] = plain.reshape(-1, 3).T
+        if largest <= settings.tolerance:
             converged_loop = True
             stopped_by = "tolerance"
+            seconds[done - 1] = time.perf_counter() - started
             break
-        touching = collided[:ns].astype(bool)
-        if contact_set is None or (np.count_nonzero(touching != contact_set)
-                                   > RESTART_FRACTION * max(np.count_nonzero(touching), 1)):
-            history_x.clear()
-            history_f.clear()
-            contact_set = touching.copy()
-        history_x.append(plain)
-        history_f.append(delta.ravel().copy())
-        if len(history_x) > settings.history + 1:
-            history_x.pop(0)
-            history_f.pop(0)
-        fallback = None
-        if len(history_x) >= 2:
-            d_f = np.stack([history_f[i + 1] - history_f[i] for i in range(len(history_f) - 1)],
-                           axis=1)
-            d_x = np.stack([history_x[i + 1] - history_x[i] for i in range(len(history_x) - 1)],
-                           axis=1)
-            gamma = np.linalg.lstsq(d_f, history_f[-1], rcond=None)[0]
-            x[:, free] = (plain - d_x @ gamma).reshape(-1, 3).T
-            fallback = plain.reshape(-1, 3).T
-        else:
-            x[:, free] = plain.reshape(-1, 3).T
-        previous_move = largest
+        # backtracking line search on the energy (Armijo)
+        alpha = min(1.0, step_limit / largest)
+        accepted = False
+        for _ in range(BACKTRACKS):
+            trial = position + alpha * step
+            trial_energy, trial_gradient, trial_volume = energy_of.evaluate(trial)
+            rise = trial_energy - energy
+            if rise <= ARMIJO * alpha * slope + ENERGY_ROUNDING * abs(energy):
+                accepted = True
+                break
+            # the minimum of the quadratic through E(0), E'(0) and E(alpha), kept in
+            # [alpha / 10, alpha / 2]
+            curve = rise - alpha * slope
+            guess = -slope * alpha * alpha / (2.0 * curve) if curve > 0.0 else 0.5 * alpha
+            alpha = min(max(guess, 0.1 * alpha), 0.5 * alpha)
+        if not accepted:
+            energy_of.evaluate(position)
+            stopped_by = "line search"
+            seconds[done - 1] = time.perf_counter() - started
+            break
+        moved = trial - position
+        change = trial_gradient - gradient
+        curvature = float(np.vdot(moved, change))
+        if settings.history and curvature > 1e-12 * float(np.linalg.norm(moved)
+                                                           * np.linalg.norm(change)):
+            history.append((moved, change, 1.0 / curvature))
+            if len(history) > settings.history:
+                history.pop(0)
+        mean_move[done - 1] = np.bincount(free_muscle, np.sqrt(np.einsum(
+            "ij,ij->i", moved, moved)), minlength=n_muscles) / sizes
+        position, energy, gradient, volume_gradient = (trial, trial_energy, trial_gradient,
+                                                       trial_volume)
+        seconds[done - 1] = time.perf_counter() - started
         if settings.time_budget is not None and seconds[done - 1] >= settings.time_budget:
             stopped_by = "time budget"
             break
         if progress is not None and progress(done / cap):
             raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
 
-    v = np.zeros_like(x)
-    collided_spheres = collided[:ns].copy()
-    passes, left = 0, 0.0
-    if settings.projection_passes > 0 and (muscle_cd or bone_cd):
+    x[:, free] = position.T
+    touching = energy_of.deepest > 0.0
+    # the final collision passes of the paper method remove the penalty's overlap
+    use_bvh = settings.structure == "octree BVH"
+    hashed = S._hash_state(spheres, not use_bvh)
+    bvh = S._bvh_state(spheres, S.SolverSettings(
+        structure=settings.structure, bvh_max_depth=settings.bvh_max_depth,
+        bvh_min_primitives=settings.bvh_min_primitives))
+    fixed_state, lists = hashed[:-5], hashed[-5:]
+    collided_spheres = touching.astype(np.uint8)
+    passes, left, projection_seconds = 0, 0.0, 0.0
+    if settings.projection_passes > 0 and (settings.muscle_muscle or settings.muscle_bone):
         tick = time.perf_counter()
         passes, left, lists = S._project(
-            x, v, sphere_state, fixed_state, bvh, use_bvh, muscle_cd, bone_cd,
+            x, np.zeros_like(x), sphere_state, fixed_state, bvh, use_bvh,
+            bool(settings.muscle_muscle), bool(settings.muscle_bone),
             int(settings.projection_passes), float(settings.penetration_tolerance), lists,
             collided_spheres)
-        phases[3] += time.perf_counter() - tick
+        projection_seconds = time.perf_counter() - tick
     rank = np.empty(n, dtype=np.int64)
     rank[prep.order] = np.arange(n)
     collided_out = np.zeros(n, dtype=bool)
-    collided_out[spheres.particle] = collided_spheres > 0
-    converged = converged_loop and left <= settings.penetration_tolerance
+    collided_out[spheres.particle] = collided_spheres[:ns] > 0
+    phases = {"mss": float(energy_of.seconds[0] + solve_seconds),
+              "muscle_cd": float(energy_of.seconds[1]), "bone_cd": float(energy_of.seconds[2]),
+              "projection": projection_seconds}
     return QuasiStaticResult(
-        x.T[rank].copy(), np.zeros((n, 3)), collided_out[rank], mean_move[:done].copy(),
-        muscle_pairs[:done].copy(), bone_pairs[:done].copy(), max_pen[:done].copy(),
-        seconds[:done].copy(),
-        {"mss": float(phases[0]), "muscle_cd": float(phases[1]), "bone_cd": float(phases[2]),
-         "projection": float(phases[3])},
-        stopped_by, 0, passes, left, residual[:done].copy(), converged)
+        positions=x.T[rank].copy(), velocity=np.zeros((n, 3)), collided=collided_out[rank],
+        mean_displacement=mean_move[:done].copy(), muscle_pairs=muscle_pairs[:done].copy(),
+        bone_pairs=bone_pairs[:done].copy(), max_penetration=max_pen[:done].copy(),
+        seconds=seconds[:done].copy(), phase_seconds=phases, stopped_by=stopped_by,
+        rebuilds=energy_of.rebuilds, projection_passes=passes, remaining_penetration=left,
+        residual=residual[:done].copy(), energy=energies[:done].copy(),
+        converged=converged_loop and left <= settings.penetration_tolerance)

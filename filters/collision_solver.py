@@ -20,9 +20,10 @@ how many collision passes ran after the last iteration and the deepest overlap t
 Two methods (property ``Method``): ``paper relaxation`` (the default,
 :mod:`muscle_mss.core.solver`) runs the paper's explicit iterations; ``quasi-static``
 (:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the same model to
-``Tolerance`` (mm, the largest particle move of a step). The quasi-static method is not the
-default because on the demo thigh it does not reach its tolerance and, per second, gets no
-nearer the equilibrium than the paper method (``benchmarks/results/quasi_static.md``). The quasi-static table
+``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
+is not the default because on the demo thigh it reaches its tolerance at the walking pose but
+not at the most flexed one within 1,000 iterations (``benchmarks/results/quasi_static.md``).
+The quasi-static table
 adds a ``residual`` column (mm, per iteration); both tables carry field data ``method`` and
 ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap above
 ``PenetrationTolerance``, or when the paper's displacement threshold fired). An unconverged
@@ -135,17 +136,18 @@ class MSSCollisionSolver(MuscleFilter):
     PROPERTIES = (
         Property("Method", "enum", "paper relaxation",
                  "quasi-static: solve for the static equilibrium of the springs, volume "
-                 "pressure, fixed tendon particles and contacts to Tolerance (local/global "
-                 "steps with a matrix factorised once per model, Anderson acceleration, then "
-                 "the final collision passes); TimeStep, Drag and DisplacementThreshold do not "
-                 "apply; on the demo thigh it does not reach 1e-3 mm within 1000 steps. paper "
+                 "pressure, fixed tendon particles and contacts to Tolerance (energy "
+                 "minimisation by L-BFGS on a spring matrix factorised once per model, contacts "
+                 "as penalties, then the final collision passes); TimeStep, Drag and "
+                 "DisplacementThreshold do not apply; on the demo thigh it converges at the "
+                 "walking pose, not at the most flexed one within 1000 steps. paper "
                  "relaxation (the default): the paper's explicit iterations (mass-spring step, "
                  "collision response) with the terminations below.",
                  choices=METHODS, group="Method"),
         Property("Tolerance", "double", Q.DEFAULT_TOLERANCE,
                  "Quasi-static: the solve has converged when no particle moves more than this "
-                 "(mm) in one step, nor (estimated from how fast the steps shrink) in all the "
-                 "steps still to come, and no two objects overlap by more than "
+                 "(mm) in one quasi-Newton step, nor (estimated from how fast the steps "
+                 "shrink) in all the steps still to come, and no two objects overlap by more than "
                  "PenetrationTolerance. Iterations caps the steps; with Termination 'time "
                  "budget' so does TimeBudget. An unconverged solve prints a warning.",
                  minimum=0.0, group="Method"),

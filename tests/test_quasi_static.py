@@ -89,7 +89,7 @@ def minimise_reference(model, bone, weight):
 def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     model, bone = chain_on_a_ball()
     prep = S.prepare(model)
-    weight = Q.factor(prep).weight
+    weight = Q.DEFAULT_CONTACT_WEIGHT * Q.preconditioner(model, prep).stiffest
     result = Q.solve(model, *bone, prepared=prep, settings=Q.QuasiStaticSettings(
         tolerance=1e-9, iterations=5000, projection_passes=0))
     assert result.converged and result.residual[-1] < 1e-9
@@ -128,10 +128,11 @@ def test_equilibrium_net_force_on_free_particles_is_below_the_tolerance_equivale
     assert result.converged and result.stopped_by == "tolerance"
     force = reference_forces(model, result.positions, S.DEFAULT_BULK_MODULUS)
     free = ~model.fixed
-    # a step of A^-1 f moves no particle more than the tolerance, so |f| <= |A| tolerance,
-    # |A| at most twice the largest sum of a particle's stiffnesses plus the contact weight
+    # the plain step (A + K)^-1 f moves no particle more than the tolerance, so |f| <= |A + K|
+    # tolerance: |A| is at most twice the largest sum of a particle's stiffnesses (K acts along
+    # the volume gradient only)
     diagonal = np.bincount(model.springs.ravel(), np.repeat(model.stiffness, 2))
-    bound = (2 * diagonal.max() + Q.factor(prep).weight) * tolerance
+    bound = 2 * diagonal.max() * tolerance
     assert np.linalg.norm(force[free], axis=1).max() < bound
     # and it is not trivially so: the posed state is far from balanced
     posed_force = reference_forces(model, model.positions, S.DEFAULT_BULK_MODULUS)
@@ -153,9 +154,9 @@ def test_iteration_cap_times_ten_gives_the_same_particles_once_converged(stretch
     settings.iterations = 4000
     b = Q.solve(stretched, settings=settings)
     assert a.converged and b.converged
-    assert np.abs(a.positions - b.positions).max() <= 1e-3
-    # a tenth of the tolerance: the distance left estimated from the steps' decay is rough
-    # (1.3e-2 mm here), far below the 0.5 mm the posed state is away
+    assert np.array_equal(a.positions, b.positions)
+    # a tenth of the tolerance: the residual (the L-BFGS step) estimates the distance left
+    # roughly (7e-3 mm measured here at 1e-3), far below the 0.5 mm the posed state is away
     settings.tolerance = 1e-4
     c = Q.solve(stretched, settings=settings)
     assert c.converged and c.iterations > a.iterations
@@ -173,7 +174,9 @@ def test_warm_start_and_cold_start_agree(stretched):
     start = stretched.positions + (near.positions - nearby.positions)
     warm = Q.solve(stretched, settings=settings, start=start)
     assert warm.converged and warm.residual[0] < 0.2 * cold.residual[0]
-    assert np.linalg.norm(warm.positions - cold.positions, axis=1).max() < 10 * 1e-4
+    assert warm.iterations < cold.iterations
+    # each within ~7 tolerances of the minimum (the residual estimates the distance roughly)
+    assert np.linalg.norm(warm.positions - cold.positions, axis=1).max() < 20 * 1e-4
 
 
 def test_bad_settings_and_start_are_refused(stretched):
@@ -246,25 +249,23 @@ def test_unconverged_solve_prints_a_warning(walk):
 
 def test_warm_start_starts_from_the_last_solution_and_agrees_with_a_cold_start(walk):
     (model_a, bones_a), (model_b, bones_b) = walk
-    warm = MSSCollisionSolver()
-    warm.SetMethod("quasi-static")
-    warm.SetTolerance(1e-2)
-    warm.SetIterations(300)
-    filter_solve(warm, model_a, bones_a)
-    out_warm, table_warm = filter_solve(warm, model_b, bones_b)
-    cold = MSSCollisionSolver()
-    cold.SetMethod("quasi-static")
-    cold.SetTolerance(1e-2)
-    cold.SetIterations(300)
-    cold.SetWarmStart(False)
-    filter_solve(cold, model_a, bones_a)
-    out_cold, table_cold = filter_solve(cold, model_b, bones_b)
-    # the warm solve started elsewhere (from the last solution), and ends where the cold one
-    # does: on the small demo neither reaches 0.01 mm in 300 steps (contacts on the bone
-    # sphere sets chatter), so the agreement asked is that of the bulk of the particles (0.23
-    # mm median measured)
+    solves = []
+    for warm_start in (True, False):
+        solver = MSSCollisionSolver()
+        solver.SetMethod("quasi-static")
+        solver.SetTolerance(1e-3)
+        solver.SetIterations(2000)
+        solver.SetWarmStart(warm_start)
+        filter_solve(solver, model_a, bones_a)
+        solves.append(filter_solve(solver, model_b, bones_b))
+    (out_warm, table_warm), (out_cold, table_cold) = solves
+    # the warm solve started elsewhere (from the last solution), and both converged. Contacts
+    # make the equilibrium not unique: here the two land in neighbouring minima (energies
+    # 618.9 and 623.6, median 0.26 mm apart, and so they stay at a tolerance of 1e-5 mm);
+    # test_warm_start_and_cold_start_agree checks the agreement where the minimum is unique
     first_step = [V.table_columns(t)["residual"][0] for t in (table_warm, table_cold)]
     assert first_step[0] != first_step[1]
+    assert V.field(table_warm, A.CONVERGED) == 1 and V.field(table_cold, A.CONVERGED) == 1
     distance = np.linalg.norm(points(out_warm) - points(out_cold), axis=1)
     assert np.median(distance) < 0.5
 
