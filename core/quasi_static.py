@@ -12,7 +12,13 @@ Energy (g mm^2 / s^2)::
          + w / 2 sum_pairs max(0, r_i + r_j - |c_i - c_j|)^2      (contacts)
 
 The contact term is a penalty on every overlapping pair of spheres of different muscles and of
-a muscle sphere with a bone sphere (tendon spheres against bones are exempt, as in the paper):
+a muscle sphere with a bone sphere (tendon spheres against bones are exempt, as in the paper),
+or, given :class:`BoneSolids`, of a muscle sphere with a bone as a solid (``max(0, r_i +
+clearance - d(c_i))`` with ``d`` the bone's signed distance: a sphere is pushed out along the
+distance gradient from any depth, where a sphere past a bone's shell of spheres is pulled on
+through it by the springs: on the full demo at the most flexed pose the sphere-set solve was
+still drifting after thousands of iterations, its particles up to 85 mm apart between 250 and
+4,000 iterations):
 each sphere of an overlapping pair is pushed along the centre line by ``w`` times the overlap,
 the whole push going to the free sphere when the other is fixed or a bone. Unlike the paper's
 response (the deepest pair of each other object) the sum over all pairs is continuously
@@ -20,21 +26,26 @@ differentiable, so the minimisation converges where the paper's rule makes conta
 ``w`` is :attr:`QuasiStaticSettings.contact_weight` times the largest sum of one particle's
 spring stiffnesses (260 g/s^2 for a lattice-26 particle at the Spring Builder's defaults). The
 penalty leaves an overlap of (contact force) / w at the minimum; the final collision passes of
-the paper method (:func:`muscle_mss.core.solver._project`) remove it.
+the paper method (:func:`muscle_mss.core.solver._project`) remove it, after the free spheres
+are pushed out of the bone solids (:func:`_push_out_of_solids`) when those are given.
 
 Minimisation: L-BFGS (Liu, Bouaziz and Kavan 2017, "Quasi-Newton methods for real-time
-simulation of hyperelastic materials") with the constant matrix ``A = L + w D`` as the initial
-inverse Hessian — ``L`` the spring Laplacian weighted by stiffness, ``D`` one on every particle
-carrying a collision sphere, fixed particles' rows and columns removed, factorised once per
-topology (one banded Cholesky factor per muscle, :class:`Preconditioner`) — plus each muscle's
-rank-one volume stiffness ``(B / V0) g g^T``, ``g = dV/dx`` at the current state
-(Sherman-Morrison). A step of ``A^-1`` alone is the local/global step of Liu et al. 2013; the
-history of the last :attr:`~QuasiStaticSettings.history` steps corrects it towards Newton's.
-A backtracking line search (Armijo) makes every iteration lower the energy, and a step moves no
-particle farther than the largest muscle sphere radius (a step through a bone's sphere shell
-would jump over its contact). Contacts are found from candidate lists (spheres of other objects
-within their radii plus a skin, :func:`muscle_mss.core.spatial_hash.candidate_lists`) rebuilt
-whenever a sphere has moved half the skin since: the energy is that of all overlapping pairs.
+simulation of hyperelastic materials") whose initial inverse Hessian is ``(A + K)^-1``: ``A = L``
+the spring Laplacian weighted by stiffness, fixed particles' rows and columns removed,
+factorised once per topology (one banded Cholesky factor per muscle, :class:`Preconditioner`),
+and ``K`` each muscle's rank-one volume stiffness ``(B / V0) g g^T``, ``g = dV/dx`` at the
+current state (Sherman-Morrison). A step of ``A^-1`` alone is the local/global step of Liu et
+al. 2013; the history of the last :attr:`~QuasiStaticSettings.history` steps corrects it
+towards Newton's. Contacts are left out of ``A``: a diagonal ``w`` on every sphere particle
+pins the free surface (the walking pose of the full demo then did not converge in 500
+iterations), refactorising ``A`` with each iteration's contacts cost 0.1 s per iteration at
+N = 20, and Newton steps solved by conjugate gradients preconditioned with ``A`` needed 80
+products each (74 s for the walking pose against 12.6 s). A backtracking line search
+(Armijo) makes every iteration lower the energy, and a step moves no particle farther than the
+largest muscle sphere radius (a longer step could jump over a contact). Contacts are found
+from candidate lists (spheres of other objects within their radii plus a skin,
+:func:`muscle_mss.core.spatial_hash.candidate_lists`) rebuilt whenever a sphere has moved half
+the skin since: the energy is that of all overlapping pairs.
 
 Termination by residual: the residual of an iteration is the largest particle move of its
 quasi-Newton step (mm, before the line search), the L-BFGS estimate of the distance to the
@@ -61,6 +72,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 from . import solver as S
 from . import spatial_hash
 from .errors import MuscleMSSError
+from .bone_distance import _sample, _to_rest, push_out_of_bones
 from .mss import _add_cage_gradient, _cage_volume
 
 DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a quasi-Newton step
@@ -100,6 +112,24 @@ class QuasiStaticSettings:
     penetration_tolerance: float = S.DEFAULT_PENETRATION_TOLERANCE    # mm
     contact_weight: float = DEFAULT_CONTACT_WEIGHT
     history: int = DEFAULT_HISTORY
+
+
+@dataclass
+class BoneSolids:
+    """Bones as solids for the muscle-bone contacts (instead of their sphere sets):
+    ``fields`` a :class:`~muscle_mss.core.bone_distance.BoneFieldSet` of b bones sampled in
+    their own frames, ``transforms`` (b, 3, 4) each bone's field frame to its posed place, and
+    ``clearance`` (b,) mm that every muscle sphere keeps from the bone's surface beyond its own
+    radius (the radius of the bone's spheres, so that a sphere clear of the solid is clear of
+    the sphere set of the paper's final collision passes too). ``embedded`` (n, b) bool, input
+    particle order, optional: the particles inside a bone in the rest pose (the tendon ends'
+    neighbours, embedded in their attachment bone), which that bone leaves alone, as the
+    surfaces of muscles inside a bone at rest are left alone."""
+
+    fields: object
+    transforms: np.ndarray
+    clearance: np.ndarray
+    embedded: np.ndarray | None = None
 
 
 @dataclass
@@ -322,6 +352,47 @@ def _contacts(x, gradient, weight, particle, radius, fixed, mm_begin, mm_end, mm
         deepest[i] = worst
 
 
+@njit(cache=True, parallel=True)
+def _field_contacts(x, gradient, weight, particle, radius, fixed, embedded, clearance,
+                    transforms, origin, spacing, dims, coarse_start, coarse, index_start,
+                    brick_index, bricks, sphere_energy, overlaps, deepest):
+    """The contact penalty of every free muscle sphere against the bones as solids: ``w / 2
+    max(0, r_i + clearance_b - d_b(c_i))^2`` per bone ``b``, ``d_b`` its signed distance
+    (:mod:`muscle_mss.core.bone_distance`, sampled in the bone's rest frame, ``transforms``
+    (b, 3, 4) rest to posed), pushing along the distance gradient from whatever depth, but not
+    where ``embedded`` (s, b) is set. Added to ``gradient``, ``sphere_energy``, ``overlaps[:,
+    1]`` and ``deepest`` (after :func:`_contacts`)."""
+    for i in prange(particle.shape[0]):
+        if fixed[i]:
+            continue
+        p = particle[i]
+        gx, gy, gz = 0.0, 0.0, 0.0
+        e = 0.0
+        count = 0
+        worst = deepest[i]
+        for b in range(transforms.shape[0]):
+            if embedded[i, b]:
+                continue
+            qx, qy, qz = _to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
+            value, hx, hy, hz = _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start,
+                                        coarse, index_start, brick_index, bricks)
+            pen = radius[i] + clearance[b] - value
+            if pen > 0.0:
+                e += 0.5 * weight * pen * pen
+                count += 1
+                worst = max(worst, pen)
+                m = transforms[b]
+                gx -= weight * pen * (m[0, 0] * hx + m[0, 1] * hy + m[0, 2] * hz)
+                gy -= weight * pen * (m[1, 0] * hx + m[1, 1] * hy + m[1, 2] * hz)
+                gz -= weight * pen * (m[2, 0] * hx + m[2, 1] * hy + m[2, 2] * hz)
+        gradient[0, p] += gx
+        gradient[1, p] += gy
+        gradient[2, p] += gz
+        sphere_energy[i] += e
+        overlaps[i, 1] += count
+        deepest[i] = worst
+
+
 @njit(cache=True)
 def _moved_more(x, particle, built, limit):
     """Whether a sphere's particle is farther than ``limit`` mm from ``built`` (3, s)."""
@@ -341,7 +412,8 @@ class _Energy:
     """The energy of one posed model as a function of the free particles' positions, with the
     contact candidate lists it keeps up to date (see the module docstring)."""
 
-    def __init__(self, model, prep, pre: Preconditioner, spheres, settings, x, weight):
+    def __init__(self, model, prep, pre: Preconditioner, spheres, settings, x, weight,
+                 solids=None):
         self.prep, self.pre, self.weight = prep, pre, weight
         self.x = x                                  # (3, n) mm, fixed particles posed
         self.free = pre.free
@@ -354,7 +426,15 @@ class _Energy:
         self.spheres = spheres
         ns = spheres.count
         self.muscle_muscle = bool(settings.muscle_muscle)
-        self.muscle_bone = bool(settings.muscle_bone) and len(spheres.bone_radius) > 0
+        self.solids = solids if settings.muscle_bone else None
+        if self.solids is not None:
+            b = len(solids.fields)
+            self.embedded = np.zeros((spheres.count, b), dtype=np.bool_)
+            if solids.embedded is not None:
+                self.embedded[:] = np.asarray(solids.embedded, dtype=bool)[
+                    prep.order[spheres.particle]]
+        self.muscle_bone = (bool(settings.muscle_bone) and self.solids is None
+                            and len(spheres.bone_radius) > 0)
         self.skin = SKIN_FRACTION * float(spheres.radius.mean()) if ns else 0.0
         self.sphere_energy = np.zeros(ns)
         self.overlaps = np.zeros((ns, 2), dtype=np.int64)
@@ -413,6 +493,12 @@ class _Energy:
             _contacts(self.x, self.gradient, self.weight, sp.particle, sp.radius, sp.fixed,
                       *self.mm, *self.mb, sp.bone_centres, sp.bone_radius, self.sphere_energy,
                       self.overlaps, self.deepest)
+            if self.solids is not None:
+                solids = self.solids
+                _field_contacts(self.x, self.gradient, self.weight, sp.particle, sp.radius,
+                                sp.fixed, self.embedded, solids.clearance, solids.transforms,
+                                *solids.fields.arrays(), self.sphere_energy, self.overlaps,
+                                self.deepest)
         self.seconds[1] += time.perf_counter() - tick
         energy = float(self.muscle_energy.sum() + self.sphere_energy.sum())
         return (energy, np.ascontiguousarray(self.gradient[:, self.free].T),
@@ -449,6 +535,21 @@ def _check(settings: QuasiStaticSettings) -> None:
                              "more")
 
 
+def _check_solids(solids: BoneSolids) -> None:
+    b = len(solids.fields)
+    transforms = np.asarray(solids.transforms)
+    clearance = np.asarray(solids.clearance)
+    if transforms.shape != (b, 3, 4) or not np.isfinite(transforms).all():
+        raise MuscleMSSError(f"the bone solids need one finite 3x4 transform per bone ({b}); "
+                             f"got shape {transforms.shape}")
+    if solids.embedded is not None and np.asarray(solids.embedded).shape[1:] != (b,):
+        raise MuscleMSSError(f"the bone solids' embedded flags need one column per bone ({b}); "
+                             f"got shape {np.asarray(solids.embedded).shape}")
+    if clearance.shape != (b,) or not (np.isfinite(clearance).all() and (clearance >= 0).all()):
+        raise MuscleMSSError(f"the bone solids need one finite clearance of 0 mm or more per "
+                             f"bone ({b}); got {clearance}")
+
+
 def _largest_move(step) -> float:
     """The largest particle move (mm) of ``step`` (f, 3)."""
     return float(np.sqrt(np.einsum("ij,ij->i", step, step).max(initial=0.0)))
@@ -482,6 +583,24 @@ class _Hessian0:
         scale = self.c * along / (1.0 + self.c * self.self_term)
         out -= self.solved_g * scale[self.free_muscle, None]
         return out
+
+
+def _push_out_of_solids(x, spheres, solids: BoneSolids, embedded) -> None:
+    """Move every free sphere's particle in ``x`` (3, n) out to its radius plus the clearance
+    from each bone solid it is not ``embedded`` (s, b) in (the penalty leaves an overlap of
+    contact force / w at the minimum;
+    :func:`~muscle_mss.core.bone_distance.push_out_of_bones`, bone by bone, twice over)."""
+    movable = ~spheres.fixed[:, None] & ~embedded
+    b = len(solids.fields)
+    for _ in range(2):
+        for bone in range(b):
+            active = np.zeros((spheres.count, b), dtype=bool)
+            active[:, bone] = movable[:, bone]
+            centres = np.ascontiguousarray(x[:, spheres.particle].T)
+            push = push_out_of_bones(solids.fields, centres,
+                                     spheres.radius + solids.clearance[bone],
+                                     solids.transforms, active)
+            x[:, spheres.particle] += push.T
 
 
 def _settled(residual, tolerance) -> bool:
@@ -520,15 +639,20 @@ def _direction(gradient, history, h0):
 
 def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
           settings: QuasiStaticSettings | None = None, progress=None,
-          prepared: S.PreparedModel | None = None, start=None) -> QuasiStaticResult:
+          prepared: S.PreparedModel | None = None, start=None,
+          bone_solids: BoneSolids | None = None) -> QuasiStaticResult:
     """The static equilibrium of the posed model with contacts (see the module docstring).
 
     Arguments as :func:`muscle_mss.core.solver.solve`; ``start`` (n, 3) mm, input particle
     order: the free particles' starting positions (warm start; omitted: the posed ones). Fixed
-    particles stay at their posed positions.
+    particles stay at their posed positions. ``bone_solids``: the bones as solids for the
+    muscle-bone contacts of the minimisation (the bone spheres then serve the final collision
+    passes only).
     """
     settings = settings or QuasiStaticSettings()
     _check(settings)
+    if bone_solids is not None:
+        _check_solids(bone_solids)
     S.check_history_size(settings.iterations, len(model.names))
     prep = prepared if prepared is not None else S.prepare(model)
     pre = preconditioner(model, prep)
@@ -551,7 +675,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     spheres, sphere_state = S.collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
     energy_of = _Energy(model, prep, pre, spheres, settings, x,
-                        float(settings.contact_weight) * pre.stiffest)
+                        float(settings.contact_weight) * pre.stiffest, bone_solids)
     step_limit = float(spheres.radius.max()) if ns else np.inf
     sizes = np.maximum(np.diff(offsets), 1)
 
@@ -647,6 +771,8 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
 
     x[:, free] = position.T
     touching = energy_of.deepest > 0.0
+    if energy_of.solids is not None and ns:
+        _push_out_of_solids(x, spheres, bone_solids, energy_of.embedded)
     # the final collision passes of the paper method remove the penalty's overlap
     use_bvh = settings.structure == "octree BVH"
     hashed = S._hash_state(spheres, not use_bvh)

@@ -1,4 +1,5 @@
-"""Bones of an input multiblock as collision spheres (paper §3.3: bones are sphere sets too).
+"""Bones of an input multiblock as collision spheres (paper §3.3: bones are sphere sets too), and
+as solids (signed distance fields) for the quasi-static solver's contacts.
 
 One place that turns a bones multiblock into the spheres of :func:`muscle_mss.core.bone_spheres.
 bone_spheres`, so that the Spring Builder (clearing muscle radii at rest), the MSS Collision
@@ -13,14 +14,19 @@ always gives the same spheres); one whose points are a rigid motion of them (Kab
 residual below :data:`RIGID_TOLERANCE` of the bone's size) gets the cached spheres moved by that
 motion; any other bone is sampled afresh. Sampling is itself equivariant under rigid motions
 (candidates and their visiting order follow the triangles, not the coordinates), so a moved
-cached set equals a fresh sampling of the moved bone up to rounding.
+cached set equals a fresh sampling of the moved bone up to rounding. The bones' signed distance
+fields (:func:`bone_solids`) go through a cache of the same kind: sampled once per bone shape
+(10 s for the three bones of the demo thigh), then placed by the fitted rigid motion.
 """
 import hashlib
 from collections import OrderedDict
 
 import numpy as np
 
+from muscle_mss.core.bone_distance import (BoneFieldSet, bone_distance_field,
+                                           exact_signed_distance)
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
+from muscle_mss.core.mesh_checks import surface_problems
 
 from . import vtk_arrays as V
 
@@ -30,14 +36,21 @@ CACHE_ENTRIES = 64          # bone shapes kept (least recently used dropped)
 #: What the cache did since :func:`clear_bone_cache`: ``sampled`` (fresh Poisson-disc
 #: samplings), ``reused`` (same points, spheres returned as cached), ``moved`` (rigid copy).
 cache_counts = {"sampled": 0, "reused": 0, "moved": 0}
-_cache = OrderedDict()      # key -> list of (points (n, 3), centres (k, 3), radii (k,))
+_cache = OrderedDict()      # key -> list of (points (n, 3), (centres (k, 3), radii (k,)))
+#: The same for the bones' distance fields (:func:`cached_bone_field`).
+field_counts = {"sampled": 0, "reused": 0, "moved": 0}
+_field_cache = OrderedDict()    # key -> list of (points (n, 3), BoneDistanceField)
+_packed = {}                    # the last packed BoneFieldSet and the fields it holds
 
 
 def clear_bone_cache():
-    """Forget every cached bone and zero :data:`cache_counts`."""
+    """Forget every cached bone and zero :data:`cache_counts` and :data:`field_counts`."""
     _cache.clear()
-    for name in cache_counts:
-        cache_counts[name] = 0
+    _field_cache.clear()
+    _packed.clear()
+    for counts in (cache_counts, field_counts):
+        for name in counts:
+            counts[name] = 0
 
 
 def rigid_fit(source, target):
@@ -55,6 +68,37 @@ def rigid_fit(source, target):
     return rotation, translation, float(np.sqrt(((moved - target) ** 2).sum(axis=1).max()))
 
 
+def _cache_key(points, triangles, *extra) -> str:
+    digest = hashlib.blake2b(np.ascontiguousarray(triangles, dtype=np.int64).tobytes(),
+                             digest_size=16)
+    digest.update(np.asarray([len(points), *extra], dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def _cached(cache, key, points):
+    """The entry of ``cache[key]`` (a list of ``(points, value)``) sampled on ``points`` (n, 3)
+    mm or on a rigid motion of them: ``(value, rotation (3, 3) or None, translation (3,) or
+    None)`` (None: the same points), or None. The key moves to the cache's recent end."""
+    entries = cache.setdefault(key, [])
+    cache.move_to_end(key)
+    for rest, value in entries:
+        if rest.shape != points.shape:
+            continue
+        if np.array_equal(rest, points):
+            return value, None, None
+        rotation, translation, residual = rigid_fit(rest, points)
+        size = float(np.ptp(points, axis=0).max()) + 1.0
+        if residual <= RIGID_TOLERANCE * size:
+            return value, rotation, translation
+    return None
+
+
+def _store(cache, key, points, value):
+    cache[key].append((points.copy(), value))
+    while len(cache) > CACHE_ENTRIES:
+        cache.popitem(last=False)
+
+
 def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", use_cache=True):
     """:func:`bone_spheres` of one bone surface (``points`` (n, 3) mm, ``triangles`` (m, 3)),
     through the rigid-bone cache described in the module docstring (``use_cache=False``: always
@@ -63,29 +107,58 @@ def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", us
     if not use_cache:
         return bone_spheres(points, triangles, spacing, where=where)
     points = np.ascontiguousarray(points, dtype=np.float64)
-    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-    digest = hashlib.blake2b(triangles.tobytes(), digest_size=16)
-    digest.update(np.asarray([len(points), float(spacing)]).tobytes())
-    key = digest.hexdigest()
-    entries = _cache.setdefault(key, [])
-    _cache.move_to_end(key)
-    for rest, centres, radii in entries:
-        if rest.shape != points.shape:
-            continue
-        if np.array_equal(rest, points):
+    key = _cache_key(points, triangles, float(spacing))
+    found = _cached(_cache, key, points)
+    if found is not None:
+        (centres, radii), rotation, translation = found
+        if rotation is None:
             cache_counts["reused"] += 1
             return centres.copy(), radii.copy()
-        rotation, translation, residual = rigid_fit(rest, points)
-        size = float(np.ptp(points, axis=0).max()) + 1.0
-        if residual <= RIGID_TOLERANCE * size:
-            cache_counts["moved"] += 1
-            return centres @ rotation.T + translation, radii.copy()
+        cache_counts["moved"] += 1
+        return centres @ rotation.T + translation, radii.copy()
     centres, radii = bone_spheres(points, triangles, spacing, where=where)
     cache_counts["sampled"] += 1
-    entries.append((points.copy(), centres.copy(), radii.copy()))
-    while len(_cache) > CACHE_ENTRIES:
-        _cache.popitem(last=False)
+    _store(_cache, key, points, (centres.copy(), radii.copy()))
     return centres, radii
+
+
+def cached_bone_field(points, triangles, where: str = "bone"):
+    """The signed distance field of one bone surface (:func:`muscle_mss.core.bone_distance.
+    bone_distance_field`, default spacing) through a rigid-bone cache like the spheres': the
+    field of the first surface of this shape, and the (3, 4) transform from that field's frame
+    to ``points``. Returns ``(BoneDistanceField, transform)``."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    key = _cache_key(points, triangles)
+    found = _cached(_field_cache, key, points)
+    if found is not None:
+        field, rotation, translation = found
+        field_counts["reused" if rotation is None else "moved"] += 1
+        if rotation is None:
+            return field, np.eye(3, 4)
+        return field, np.hstack([rotation, translation[:, None]])
+    field = bone_distance_field(points, triangles, where=where)
+    field_counts["sampled"] += 1
+    _store(_field_cache, key, points, field)
+    return field, np.eye(3, 4)
+
+
+def bone_solids(bones, where: str = "bones"):
+    """Every bone of a multiblock as a solid: ``(BoneFieldSet, transforms (b, 3, 4))``, bone b
+    being its block's index, each field sampled once per bone shape (:func:`cached_bone_field`)
+    and placed by its transform."""
+    fields, transforms, names = [], [], []
+    for name, block in V.polydata_blocks(bones, where, "a triangle surface"):
+        block_where = f"{where} block '{name}'"
+        field, transform = cached_bone_field(V.points_of(block),
+                                             V.triangles_of(block, block_where), block_where)
+        fields.append(field)
+        transforms.append(transform)
+        names.append(name)
+    key = tuple(id(f) for f in fields)
+    if _packed.get("key") != key:
+        _packed.clear()
+        _packed.update(key=key, fields=BoneFieldSet.pack(fields, names))
+    return _packed["fields"], np.array(transforms).reshape(-1, 3, 4)
 
 
 def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
@@ -101,3 +174,18 @@ def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
         radii.append(r)
         ids.append(np.full(len(c), k, dtype=np.int64))
     return np.concatenate(centres), np.concatenate(radii), np.concatenate(ids)
+
+
+def inside_bones(points, bones, where: str = "bones") -> np.ndarray:
+    """(n,) bool: which of ``points`` (n, 3) mm lie inside a bone of the multiblock (exact
+    signed distance to its surface below 0). A bone whose surface is not closed and
+    consistently oriented has no inside and is skipped."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    inside = np.zeros(len(points), dtype=bool)
+    for name, block in V.polydata_blocks(bones, where, "a triangle surface"):
+        block_where = f"{where} block '{name}'"
+        vertices, triangles = V.points_of(block), V.triangles_of(block, block_where)
+        if surface_problems(vertices, triangles):
+            continue
+        inside |= exact_signed_distance(vertices, triangles, points, where=block_where) < 0.0
+    return inside

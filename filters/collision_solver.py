@@ -46,7 +46,7 @@ from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError
 
 from . import array_names as A
-from .bone_sets import bone_sphere_set
+from .bone_sets import bone_solids, bone_sphere_set
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .properties import Property
@@ -57,6 +57,17 @@ POINT_ARRAYS = (A.REST_POSITION, A.FIBRE_ID, A.FIBRE_INDEX, A.FIXED, A.BOUNDARY,
 CELL_ARRAYS = (A.REST_LENGTH, A.STIFFNESS, A.DAMPING)
 MEAN_DISPLACEMENT = "mean_displacement_"
 METHODS = (Q.METHOD, "paper relaxation")
+BONE_CONTACTS = ("solid", "sphere set")
+
+
+def solid_bones(posed_bones, bones) -> Q.BoneSolids:
+    """The posed bones multiblock as solids for the quasi-static contacts, each keeping the
+    largest radius of its spheres ``bones`` (``(centres, radii, bone)`` of
+    :func:`bone_sphere_set`) as clearance."""
+    fields, transforms = bone_solids(posed_bones, BONES)
+    _, radii, bone = bones
+    clearance = np.array([radii[bone == b].max(initial=0.0) for b in range(len(fields))])
+    return Q.BoneSolids(fields, transforms, clearance)
 
 
 def _muscle_block(name, block):
@@ -220,6 +231,15 @@ class MSSCollisionSolver(MuscleFilter):
         Property("PenetrationTolerance", "double", S.DEFAULT_PENETRATION_TOLERANCE,
                  "Deepest overlap (mm) of two spheres of different objects at which the final "
                  "collision passes stop.", minimum=0.0, group="Collisions"),
+        Property("BoneContact", "enum", BONE_CONTACTS[0],
+                 "Quasi-static method: how the bones push muscle spheres. solid: each bone is a "
+                 "solid (its signed distance, sampled once per bone shape, about 10 s for the "
+                 "demo thigh, and moved with the bone); a sphere is pushed out along the "
+                 "distance gradient from any depth until it is its radius plus the bone "
+                 "spheres' radius outside the surface. sphere set: the paper's spheres on the "
+                 "bone surface (a sphere carried past that shell can be pulled through it). The "
+                 "paper relaxation and the final collision passes always use the sphere set.",
+                 choices=BONE_CONTACTS, group="Collisions"),
         Property("BoneSphereSpacing", "double", DEFAULT_SPACING,
                  "Least distance between bone sphere centres, and their radius (mm). The bones "
                  "are sampled into about 0.62 * area / spacing^2 spheres (Poisson-disc): the "
@@ -257,7 +277,7 @@ class MSSCollisionSolver(MuscleFilter):
         model = self._model([name for name, _ in blocks], parts)
         bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
         prepared = self._prepare(model)
-        result = self._solve(model, bones, prepared)
+        result = self._solve(model, bones, prepared, inputs[1])
         items = []
         for m, ((name, block), part) in enumerate(zip(blocks, parts)):
             lo, hi = model.offsets[m], model.offsets[m + 1]
@@ -307,20 +327,25 @@ class MSSCollisionSolver(MuscleFilter):
             projection_passes=self.value("ProjectionPasses"),
             penetration_tolerance=self.value("PenetrationTolerance"))
 
-    def _solve(self, model: S.MSSModel, bones, prepared: S.PreparedModel):
+    def _solve(self, model: S.MSSModel, bones, prepared: S.PreparedModel, posed_bones):
         """The chosen method's solve; the quasi-static one warm started from the last solution
-        when the model (topology, rest state) and the properties are unchanged."""
+        when the model (topology, rest state) and the properties are unchanged, against the
+        bones as solids when BoneContact says so (``posed_bones`` the input multiblock)."""
         progress = lambda f: self.progress(0.05 + 0.9 * f)  # noqa: E731
         if self.choice("Method") != Q.METHOD:
             return S.solve(model, *bones, settings=self.settings(), progress=progress,
                            prepared=prepared)
         settings = self.quasi_static_settings()
-        key = (self._prepared_key, repr(settings), self.value("BoneSphereSpacing"))
+        key = (self._prepared_key, repr(settings), self.value("BoneSphereSpacing"),
+               self.choice("BoneContact"))
         start = None
         if self.value("WarmStart") and self._last is not None and self._last[0] == key:
             start = model.positions + (self._last[2] - self._last[1])
+        solids = None
+        if self.choice("BoneContact") == "solid" and settings.muscle_bone:
+            solids = solid_bones(posed_bones, bones)
         result = Q.solve(model, *bones, settings=settings, progress=progress,
-                         prepared=prepared, start=start)
+                         prepared=prepared, start=start, bone_solids=solids)
         self._last = (key, np.array(model.positions, dtype=np.float64), result.positions)
         return result
 

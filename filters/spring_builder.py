@@ -17,7 +17,9 @@ and radii follow :mod:`muscle_mss.core.radii`; the radii of all muscles are shru
 that no two spheres of different muscles overlap in the rest pose (with either radius rule), and,
 with ``Bones``, so that no muscle sphere overlaps a bone sphere (the solver's bone spheres at
 :data:`~muscle_mss.core.bone_spheres.DEFAULT_SPACING`) in the rest pose: DESIGN §6, no two
-spheres of different objects overlap at rest.
+spheres of different objects overlap at rest. A particle inside a bone at rest (the scenes embed
+the ends of some fibres in their attachment bone) gets no sphere: it belongs to the bone, and
+the solver would push it out of it.
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ from muscle_mss.core.validation import placement_problems
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
-from .bone_sets import bone_sphere_set
+from .bone_sets import bone_sphere_set, inside_bones
 from .properties import Property
 
 LAYOUTS = ("lattice-6", "lattice-26", "Delaunay", "k-NN")
@@ -207,9 +209,12 @@ class SpringBuilder(MuscleFilter):
         if inputs[2] is None:
             vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {NO_BONES_WARNING}\n")
         else:
+            rest = np.concatenate([m["rest"] for m in models])
             bone_centres, bone_radii, _ = bone_sphere_set(inputs[2], where=BONES_FILE)
-            radii = clear_of_obstacles(np.concatenate([m["rest"] for m in models]), radii,
-                                       bone_centres, bone_radii)
+            radii = clear_of_obstacles(rest, radii, bone_centres, bone_radii)
+            # a particle inside a bone at rest is embedded in it (a tendon end's
+            # neighbours): no sphere, or the solver would push it out of the bone it belongs to
+            radii[inside_bones(rest, inputs[2], BONES_FILE)] = 0.0
         starts = np.concatenate([[0], np.cumsum(sizes)])
         items = [(name, self._output_block(name, block, model, radii[starts[i]:starts[i + 1]],
                                            layout))

@@ -276,3 +276,40 @@ def test_filter_refuses_a_negative_tolerance(walk):
     solver.SetTolerance(-1.0)
     with pytest.raises(MuscleMSSError, match="Tolerance"):
         filter_solve(solver, *walk[0])
+
+
+# ---- bones as solids ---------------------------------------------------------------------------
+
+def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
+    """The chain of chain_on_a_ball, its middle posed 1 and 3 mm deep inside a box bone from the
+    box's +x face (the box spans the chain's width and more): every free sphere ends its radius
+    plus the clearance outside, on the +x side, where the bone's sphere shell would let the
+    deeper strand be pulled through."""
+    from muscle_mss.core.bone_distance import bone_field_set, reference_signed_distance
+    from test_bone_distance import box_mesh
+    model, _ = chain_on_a_ball()
+    box = box_mesh([-10.0, -10.0, 4.5], [3.0, 12.0, 10.5])
+    clearance = 0.5
+    solids = Q.BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance]))
+    inside = reference_signed_distance(*box, model.positions) < 0
+    assert inside.sum() == 8 and not (inside & model.fixed).any()
+    result = Q.solve(model, settings=Q.QuasiStaticSettings(tolerance=1e-4, iterations=3000),
+                     bone_solids=solids)
+    assert result.converged
+    free = ~model.fixed
+    depth = reference_signed_distance(*box, result.positions[free])
+    assert depth.min() >= 0.8 + clearance - 1e-3
+    assert (result.positions[inside, 0] > 3.0 + 0.8 + clearance - 1e-3).all()
+    # the penalty alone leaves an overlap of force / w, which the final push removed
+    assert result.max_penetration[-1] > 1e-3
+
+
+def test_solid_bones_are_checked():
+    from muscle_mss.core.bone_distance import bone_field_set
+    from test_bone_distance import box_mesh
+    model, _ = chain_on_a_ball()
+    fields = bone_field_set([box_mesh([0, 0, 0], [1, 1, 1])])
+    with pytest.raises(MuscleMSSError, match="one finite 3x4 transform per bone"):
+        Q.solve(model, bone_solids=Q.BoneSolids(fields, np.eye(3, 4), np.zeros(1)))
+    with pytest.raises(MuscleMSSError, match="clearance"):
+        Q.solve(model, bone_solids=Q.BoneSolids(fields, np.eye(3, 4)[None], -np.ones(1)))
