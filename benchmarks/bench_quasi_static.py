@@ -2,16 +2,16 @@
 
 For the walking pose (a third into the motion, t = 0.35 s, as bench_solver.py) and the most
 flexed pose (t = 0.75 s), at N = 20 and 80 particles per fibre (13 muscles x 64 fibres,
-lattice-26, the filter's bone spheres): iterations and seconds of the default solve
-(Tolerance 1e-3 mm, capped), whether it converged, the distance of its particles to a 10x
-tighter solve (Tolerance 1e-4 mm, a larger cap) mean / max mm, and the same distance for the
-paper relaxation at 500 iterations. Then the whole walk (21 time points, N = 20) solved in time
-order cold (from each posed state) and warm (from the last solution carried by the pose
-change, as the filter does). Machine and load in the table; written to
-benchmarks/results/quasi_static.md.
+lattice-26, the filter's bone spheres and bone solids): iterations and seconds of the default
+solve (Tolerance 1e-3 mm, bones as solids, capped), whether it converged, the distance of its
+particles to a 10x tighter solve (Tolerance 1e-4 mm, a larger cap) mean / max mm, the same for
+the solve against the bones' sphere sets and for the paper relaxation at 500 iterations. Then
+the whole walk (21 time points, N = 20) solved in time order cold (from each posed state) and
+warm (from the last solution carried by the pose change, as the filter does). Machine and
+load in the table; written to benchmarks/results/quasi_static.md.
 
-    python benchmarks/bench_quasi_static.py [--sizes 20 80] [--cap 500] [--tight-cap 2000]
-                                            [--walk-cap 500]
+    python benchmarks/bench_quasi_static.py [--sizes 20 80] [--cap 1000] [--tight-cap 3000]
+                                            [--walk-cap 300]
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ from muscle_mss.core import solver as S
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
-from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block
+from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block, solid_bones
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
@@ -40,12 +40,14 @@ POSES = (("walking", 0.35), ("most flexed", 0.75))
 
 
 def workload(pipeline, t):
-    """The solver's inputs at time ``t`` as the filter builds them (its bone spheres)."""
+    """The solver's inputs at time ``t`` as the filter builds them: the model, its bone spheres
+    and its bones as solids."""
     blocks = V.blocks(update_at(pipeline.pose, 0, t))
-    bones = bone_sphere_set(update_at(pipeline.pose, 1, t))
+    posed_bones = update_at(pipeline.pose, 1, t)
+    bones = bone_sphere_set(posed_bones)
     model = MSSCollisionSolver._model([b for b, _ in blocks],
                                       [_muscle_block(name, block) for name, block in blocks])
-    return model, bones
+    return model, bones, solid_bones(posed_bones, bones)
 
 
 def distance(a, b):
@@ -62,49 +64,55 @@ def main(args):
         pipeline = build_pipeline(folder, {"ParticlesPerFibre": n})
         prepared = None
         for label, t in POSES:
-            model, bones = workload(pipeline, t)
+            model, bones, solids = workload(pipeline, t)
             if prepared is None:
                 prepared = S.prepare(model)
                 tick = time.perf_counter()
-                Q.factor(prepared)
+                Q.preconditioner(model, prepared)
                 factor_seconds = time.perf_counter() - tick
-                Q.solve(model, *bones, prepared=prepared,
+                Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
                         settings=Q.QuasiStaticSettings(iterations=2))   # compiled, warm
             tick = time.perf_counter()
-            default = Q.solve(model, *bones, prepared=prepared,
+            default = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
                               settings=Q.QuasiStaticSettings(iterations=args.cap))
             seconds = time.perf_counter() - tick
-            tight = Q.solve(model, *bones, prepared=prepared, settings=Q.QuasiStaticSettings(
-                tolerance=Q.DEFAULT_TOLERANCE / 10, iterations=args.tight_cap))
+            tick = time.perf_counter()
+            spheres = Q.solve(model, *bones, prepared=prepared,
+                              settings=Q.QuasiStaticSettings(iterations=args.cap))
+            sphere_seconds = time.perf_counter() - tick
+            tight = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
+                            settings=Q.QuasiStaticSettings(tolerance=Q.DEFAULT_TOLERANCE / 10,
+                                                           iterations=args.tight_cap))
             tick = time.perf_counter()
             paper = S.solve(model, *bones, prepared=prepared)
             paper_seconds = time.perf_counter() - tick
             row = (n, label, t, default.iterations, seconds, default.converged,
                    float(default.residual[-1]), *distance(default.positions, tight.positions),
-                   tight.iterations, tight.converged, paper_seconds,
-                   *distance(paper.positions, tight.positions), factor_seconds,
+                   tight.iterations, tight.converged, spheres.iterations, sphere_seconds,
+                   spheres.converged, *distance(spheres.positions, tight.positions),
+                   paper_seconds, *distance(paper.positions, tight.positions), factor_seconds,
                    os.getloadavg()[0])
             rows.append(row)
             print(row, flush=True)
     if args.walk_cap:
         pipeline = build_pipeline(folder, {"ParticlesPerFibre": 20})
-        models = [workload(pipeline, float(t)) for t in scene.motion.times]
-        prepared = S.prepare(models[0][0])
-        Q.factor(prepared)
+        inputs = [workload(pipeline, float(t)) for t in scene.motion.times]
+        prepared = S.prepare(inputs[0][0])
+        Q.preconditioner(inputs[0][0], prepared)
         for mode in ("cold", "warm"):
             settings = Q.QuasiStaticSettings(iterations=args.walk_cap)
             last = None
             iterations, converged = 0, 0
             tick = time.perf_counter()
-            for model, bones in models:
+            for model, bones, solids in inputs:
                 start = None if (mode == "cold" or last is None) else (
                     model.positions + (last[1] - last[0]))
                 result = Q.solve(model, *bones, settings=settings, prepared=prepared,
-                                 start=start)
+                                 start=start, bone_solids=solids)
                 last = (model.positions, result.positions)
                 iterations += result.iterations
                 converged += int(result.converged)
-            walk_rows.append((mode, len(models), time.perf_counter() - tick, iterations,
+            walk_rows.append((mode, len(inputs), time.perf_counter() - tick, iterations,
                               converged, os.getloadavg()[0]))
             print(walk_rows[-1], flush=True)
 
@@ -114,20 +122,23 @@ def main(args):
         f"({numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, Python "
         f"{platform.python_version()}. The machine is shared: the load average (1 min) after "
         "each row is given.", "",
-        f"Default solve: Tolerance {Q.DEFAULT_TOLERANCE} mm, cap {args.cap} iterations. "
-        f"Tighter: Tolerance {Q.DEFAULT_TOLERANCE / 10} mm, cap {args.tight_cap}. Distances are "
-        "per particle to the tighter solve, after the final collision passes. Paper: the paper "
-        "relaxation at its default 500 iterations. Factor: the one-off factorisation per "
-        "topology (s).", "",
+        f"Default solve: Tolerance {Q.DEFAULT_TOLERANCE} mm, cap {args.cap} iterations, bones "
+        f"as solids (the filter's default). Tighter: Tolerance {Q.DEFAULT_TOLERANCE / 10} mm, "
+        f"cap {args.tight_cap}, solids. Sphere set: the default solve against the bones' "
+        "sphere sets. Distances are per particle to the tighter solve, after the final "
+        "collision passes, mean / max mm. Paper: the paper relaxation at its default 500 "
+        "iterations. Factor: the one-off factorisation per topology (s).", "",
         "| N | pose | t s | iterations | seconds | converged | last residual mm | "
-        "distance to tighter mean / max mm | tighter iterations (converged) | paper s | "
-        "paper distance mean / max mm | factor s | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for (n, label, t, it, sec, conv, res, dm, dx, tit, tconv, psec, pm, px, fsec,
-         load) in rows:
-        lines.append(f"| {n} | {label} | {t:.2f} | {it} | {sec:.2f} | {'yes' if conv else 'no'} "
-                     f"| {res:.3g} | {dm:.3f} / {dx:.2f} | {tit} ({'yes' if tconv else 'no'}) | "
-                     f"{psec:.2f} | {pm:.3f} / {px:.2f} | {fsec:.2f} | {load:.2f} |")
+        "to tighter | tighter iterations (converged) | sphere set: iterations, seconds "
+        "(converged) | sphere set to tighter | paper s | paper to tighter | factor s | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for (n, label, t, it, sec, conv, res, dm, dx, tit, tconv, sit, ssec, sconv, sm, sx, psec,
+         pm, px, fsec, load) in rows:
+        yes = {True: "yes", False: "no"}
+        lines.append(f"| {n} | {label} | {t:.2f} | {it} | {sec:.2f} | {yes[conv]} | {res:.3g} "
+                     f"| {dm:.3f} / {dx:.2f} | {tit} ({yes[tconv]}) | {sit}, {ssec:.2f} "
+                     f"({yes[sconv]}) | {sm:.3f} / {sx:.2f} | {psec:.2f} | {pm:.3f} / {px:.2f} "
+                     f"| {fsec:.2f} | {load:.2f} |")
     if walk_rows:
         lines += ["", f"Whole walk (N = 20, cap {args.walk_cap} iterations per time point, in "
                   "time order):", "",
@@ -147,7 +158,7 @@ def main(args):
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[20, 80])
-    parser.add_argument("--cap", type=int, default=500)
-    parser.add_argument("--tight-cap", type=int, default=2000)
-    parser.add_argument("--walk-cap", type=int, default=500)
+    parser.add_argument("--cap", type=int, default=1000)
+    parser.add_argument("--tight-cap", type=int, default=3000)
+    parser.add_argument("--walk-cap", type=int, default=300)
     main(parser.parse_args())
