@@ -30,7 +30,10 @@ adds a ``residual`` column (mm, per iteration); both tables carry field data ``m
 quasi-static solve prints a warning (ParaView's output messages). Warm start (``WarmStart``):
 the filter keeps its last quasi-static solution; asked for another pose of the same model with
 the same properties, it starts from the posed particles plus the last solution's displacement
-from its own posed particles instead of from the posed state.
+from its own posed particles instead of from the posed state. Bones (``BoneContact``, quasi-static
+method): as solids by default (:func:`solid_bones`: each bone's signed distance field, sampled
+once per bone shape by :func:`~muscle_mss.filters.bone_sets.bone_solids`), or as the paper's
+sphere sets; the paper relaxation and the final collision passes use the sphere sets.
 """
 from __future__ import annotations
 
