@@ -50,7 +50,7 @@ the skin since: the energy is that of all overlapping pairs.
 Termination by residual: the residual of an iteration is the largest particle move of its
 quasi-Newton step (mm, before the line search), the L-BFGS estimate of the distance to the
 minimum. The loop stops when it is below ``tolerance`` and so is the distance still to go
-estimated from its decay (:func:`_settled`), and the plain preconditioned step ``(A + K)^-1
+estimated from its decay (:func:`distance_to_go`), and the plain preconditioned step ``(A + K)^-1
 grad E`` is below ``tolerance`` as well (it bounds the force: ``|f| <= |A + K| tolerance``);
 then the final collision passes run. The solve has converged when the loop stopped so and
 the passes left no overlap above ``penetration_tolerance``. ``iterations`` caps the loop and
@@ -603,21 +603,27 @@ def _push_out_of_solids(x, spheres, solids: BoneSolids, embedded) -> None:
             x[:, spheres.particle] += push.T
 
 
-def _settled(residual, tolerance) -> bool:
-    """Whether the distance still to go, estimated as ``r rho / (1 - rho)`` with ``r`` the last
-    residual and ``rho`` its mean decay per iteration over the last :data:`RATE_WINDOW`
-    iterations, is below ``tolerance`` (mm). A step shrinking by ``rho`` per iteration has that
-    much left in its geometric tail: the last step alone understated the distance to the
-    minimum 50 times on the small demo (a solve stopped at 0.01 mm ended 0.55 mm from one
-    started elsewhere). A residual below :data:`REST_STEP` is rest."""
-    last = residual[-1]
+def distance_to_go(residual) -> float:
+    """The distance (mm) the particles still have to go after the iterations whose residuals
+    are ``residual`` (K,), estimated as ``r rho / (1 - rho)``: ``r`` the last residual, ``rho``
+    its mean decay per iteration over the last :data:`RATE_WINDOW` iterations (a step
+    shrinking by ``rho`` per iteration has that much left in its geometric tail; the last step
+    alone understated the distance to the minimum 50 times on the small demo, where a solve
+    stopped at 0.01 mm ended 0.55 mm from one started elsewhere). ``inf`` when the residual is
+    not shrinking or there is one only; 0 below :data:`REST_STEP` (rest)."""
+    last = float(residual[-1])
     if last < REST_STEP:
-        return True
+        return 0.0
     if len(residual) < 2:
-        return False
+        return np.inf
     window = min(RATE_WINDOW, len(residual) - 1)
     rate = (last / residual[-1 - window]) ** (1.0 / window)
-    return rate < 1.0 and last * rate / (1.0 - rate) < tolerance
+    return last * rate / (1.0 - rate) if rate < 1.0 else np.inf
+
+
+def _settled(residual, tolerance) -> bool:
+    """Whether :func:`distance_to_go` is below ``tolerance`` (mm)."""
+    return distance_to_go(residual) < tolerance
 
 
 def _direction(gradient, history, h0):

@@ -310,9 +310,11 @@ class MSSCollisionSolver(MuscleFilter):
             vtkOutputWindow.GetInstance().DisplayWarningText(
                 f"{self.LABEL}: the quasi-static solve did not converge in "
                 f"{result.iterations} iterations ({result.stopped_by}): the last step moved a "
-                f"particle {result.residual[-1]:.3g} mm (Tolerance {self.value('Tolerance')} mm),"
-                f" deepest overlap left {result.remaining_penetration:.3g} mm (PenetrationTolera"
-                f"nce {self.value('PenetrationTolerance')} mm); raise Iterations or the "
+                f"particle {result.residual[-1]:.3g} mm and the steps still to come would "
+                f"move one about {Q.distance_to_go(result.residual):.3g} mm more (Tolerance "
+                f"{self.value('Tolerance')} mm), deepest overlap left "
+                f"{result.remaining_penetration:.3g} mm (PenetrationTolerance "
+                f"{self.value('PenetrationTolerance')} mm); raise Iterations or the "
                 "Tolerance\n")
         self.progress(1.0)
 
