@@ -121,15 +121,12 @@ class BoneSolids:
     their own frames, ``transforms`` (b, 3, 4) each bone's field frame to its posed place, and
     ``clearance`` (b,) mm that every muscle sphere keeps from the bone's surface beyond its own
     radius (the radius of the bone's spheres, so that a sphere clear of the solid is clear of
-    the sphere set of the paper's final collision passes too). ``embedded`` (n, b) bool, input
-    particle order, optional: the particles inside a bone in the rest pose (the tendon ends'
-    neighbours, embedded in their attachment bone), which that bone leaves alone, as the
-    surfaces of muscles inside a bone at rest are left alone."""
+    the sphere set of the paper's final collision passes too). Particles inside a bone at rest
+    have no sphere (the Spring Builder's Bones input), so no solid pushes them."""
 
     fields: object
     transforms: np.ndarray
     clearance: np.ndarray
-    embedded: np.ndarray | None = None
 
 
 @dataclass
@@ -353,15 +350,15 @@ def _contacts(x, gradient, weight, particle, radius, fixed, mm_begin, mm_end, mm
 
 
 @njit(cache=True, parallel=True)
-def _field_contacts(x, gradient, weight, particle, radius, fixed, embedded, clearance,
-                    transforms, origin, spacing, dims, coarse_start, coarse, index_start,
-                    brick_index, bricks, sphere_energy, overlaps, deepest):
+def _field_contacts(x, gradient, weight, particle, radius, fixed, clearance, transforms,
+                    origin, spacing, dims, coarse_start, coarse, index_start, brick_index,
+                    bricks, sphere_energy, overlaps, deepest):
     """The contact penalty of every free muscle sphere against the bones as solids: ``w / 2
     max(0, r_i + clearance_b - d_b(c_i))^2`` per bone ``b``, ``d_b`` its signed distance
     (:mod:`muscle_mss.core.bone_distance`, sampled in the bone's rest frame, ``transforms``
-    (b, 3, 4) rest to posed), pushing along the distance gradient from whatever depth, but not
-    where ``embedded`` (s, b) is set. Added to ``gradient``, ``sphere_energy``, ``overlaps[:,
-    1]`` and ``deepest`` (after :func:`_contacts`)."""
+    (b, 3, 4) rest to posed), pushing along the distance gradient from whatever depth. Added
+    to ``gradient``, ``sphere_energy``, ``overlaps[:, 1]`` and ``deepest`` (after
+    :func:`_contacts`)."""
     for i in prange(particle.shape[0]):
         if fixed[i]:
             continue
@@ -371,8 +368,6 @@ def _field_contacts(x, gradient, weight, particle, radius, fixed, embedded, clea
         count = 0
         worst = deepest[i]
         for b in range(transforms.shape[0]):
-            if embedded[i, b]:
-                continue
             qx, qy, qz = _to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
             value, hx, hy, hz = _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start,
                                         coarse, index_start, brick_index, bricks)
@@ -427,12 +422,6 @@ class _Energy:
         ns = spheres.count
         self.muscle_muscle = bool(settings.muscle_muscle)
         self.solids = solids if settings.muscle_bone else None
-        if self.solids is not None:
-            b = len(solids.fields)
-            self.embedded = np.zeros((spheres.count, b), dtype=np.bool_)
-            if solids.embedded is not None:
-                self.embedded[:] = np.asarray(solids.embedded, dtype=bool)[
-                    prep.order[spheres.particle]]
         self.muscle_bone = (bool(settings.muscle_bone) and self.solids is None
                             and len(spheres.bone_radius) > 0)
         self.skin = SKIN_FRACTION * float(spheres.radius.mean()) if ns else 0.0
@@ -496,7 +485,7 @@ class _Energy:
             if self.solids is not None:
                 solids = self.solids
                 _field_contacts(self.x, self.gradient, self.weight, sp.particle, sp.radius,
-                                sp.fixed, self.embedded, solids.clearance, solids.transforms,
+                                sp.fixed, solids.clearance, solids.transforms,
                                 *solids.fields.arrays(), self.sphere_energy, self.overlaps,
                                 self.deepest)
         self.seconds[1] += time.perf_counter() - tick
@@ -542,9 +531,6 @@ def _check_solids(solids: BoneSolids) -> None:
     if transforms.shape != (b, 3, 4) or not np.isfinite(transforms).all():
         raise MuscleMSSError(f"the bone solids need one finite 3x4 transform per bone ({b}); "
                              f"got shape {transforms.shape}")
-    if solids.embedded is not None and np.asarray(solids.embedded).shape[1:] != (b,):
-        raise MuscleMSSError(f"the bone solids' embedded flags need one column per bone ({b}); "
-                             f"got shape {np.asarray(solids.embedded).shape}")
     if clearance.shape != (b,) or not (np.isfinite(clearance).all() and (clearance >= 0).all()):
         raise MuscleMSSError(f"the bone solids need one finite clearance of 0 mm or more per "
                              f"bone ({b}); got {clearance}")
@@ -585,17 +571,15 @@ class _Hessian0:
         return out
 
 
-def _push_out_of_solids(x, spheres, solids: BoneSolids, embedded) -> None:
+def _push_out_of_solids(x, spheres, solids: BoneSolids) -> None:
     """Move every free sphere's particle in ``x`` (3, n) out to its radius plus the clearance
-    from each bone solid it is not ``embedded`` (s, b) in (the penalty leaves an overlap of
-    contact force / w at the minimum;
+    from each bone solid (the penalty leaves an overlap of contact force / w at the minimum;
     :func:`~muscle_mss.core.bone_distance.push_out_of_bones`, bone by bone, twice over)."""
-    movable = ~spheres.fixed[:, None] & ~embedded
     b = len(solids.fields)
     for _ in range(2):
         for bone in range(b):
             active = np.zeros((spheres.count, b), dtype=bool)
-            active[:, bone] = movable[:, bone]
+            active[:, bone] = ~spheres.fixed
             centres = np.ascontiguousarray(x[:, spheres.particle].T)
             push = push_out_of_bones(solids.fields, centres,
                                      spheres.radius + solids.clearance[bone],
@@ -778,7 +762,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     x[:, free] = position.T
     touching = energy_of.deepest > 0.0
     if energy_of.solids is not None and ns:
-        _push_out_of_solids(x, spheres, bone_solids, energy_of.embedded)
+        _push_out_of_solids(x, spheres, bone_solids)
     # the final collision passes of the paper method remove the penalty's overlap
     use_bvh = settings.structure == "octree BVH"
     hashed = S._hash_state(spheres, not use_bvh)
