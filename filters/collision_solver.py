@@ -307,11 +307,13 @@ class MSSCollisionSolver(MuscleFilter):
         V.set_field(outputs[1], A.CONVERGED, int(converged))
         V.set_field(outputs[1], A.METHOD, self.choice("Method"))
         if quasi_static and not converged:
+            to_go = Q.distance_to_go(result.residual)
+            still = (f"the steps still to come would move one about {to_go:.3g} mm more"
+                     if np.isfinite(to_go) else "the steps are not shrinking yet")
             vtkOutputWindow.GetInstance().DisplayWarningText(
                 f"{self.LABEL}: the quasi-static solve did not converge in "
                 f"{result.iterations} iterations ({result.stopped_by}): the last step moved a "
-                f"particle {result.residual[-1]:.3g} mm and the steps still to come would "
-                f"move one about {Q.distance_to_go(result.residual):.3g} mm more (Tolerance "
+                f"particle {result.residual[-1]:.3g} mm and {still} (Tolerance "
                 f"{self.value('Tolerance')} mm), deepest overlap left "
                 f"{result.remaining_penetration:.3g} mm (PenetrationTolerance "
                 f"{self.value('PenetrationTolerance')} mm); raise Iterations or the "
