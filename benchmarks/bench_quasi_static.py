@@ -47,7 +47,7 @@ def workload(pipeline, t):
     bones = bone_sphere_set(posed_bones)
     model = MSSCollisionSolver._model([b for b, _ in blocks],
                                       [_muscle_block(name, block) for name, block in blocks])
-    return model, bones, solid_bones(posed_bones, bones)
+    return model, bones, solid_bones(posed_bones)
 
 
 def distance(a, b):

@@ -148,6 +148,52 @@ class BoneFieldSet:
                 self.index_start, self.brick_index, self.bricks)
 
 
+@dataclass
+class BoneSolids:
+    """Bones as solids for the solvers' muscle-bone contacts (instead of their sphere sets):
+    ``fields`` a :class:`BoneFieldSet` of b bones sampled in their own frames, ``transforms``
+    (b, 3, 4) each bone's field frame to its posed place, and ``clearance`` (b,) mm that every
+    muscle sphere keeps from the bone's surface beyond its own radius (the radius of the bone's
+    spheres, the paper's bone thickness: a sphere clear of the solid is clear of the sphere set
+    too). Particles inside a bone at rest have no sphere (the Rigid Pose Transform clears them,
+    :func:`muscle_mss.filters.bone_sets.clear_of_bones`), so no solid pushes them."""
+
+    fields: BoneFieldSet
+    transforms: np.ndarray
+    clearance: np.ndarray
+
+    def check(self) -> None:
+        """Raise :class:`MuscleMSSError` unless there is one finite 3x4 transform and one finite
+        clearance of 0 mm or more per bone."""
+        b = len(self.fields)
+        transforms = np.asarray(self.transforms)
+        clearance = np.asarray(self.clearance)
+        if transforms.shape != (b, 3, 4) or not np.isfinite(transforms).all():
+            raise MuscleMSSError(f"the bone solids need one finite 3x4 transform per bone ({b}); "
+                                 f"got shape {transforms.shape}")
+        if clearance.shape != (b,) or not (np.isfinite(clearance).all()
+                                           and (clearance >= 0).all()):
+            raise MuscleMSSError(f"the bone solids need one finite clearance of 0 mm or more per "
+                                 f"bone ({b}); got {clearance}")
+
+    @property
+    def reach(self) -> float:
+        """mm: the farthest a push out of a bone can move a point (half the largest sampled
+        box's diagonal plus the largest clearance; 0 without bones)."""
+        if not len(self.fields):
+            return 0.0
+        boxes = self.fields.dims * BRICK * self.fields.spacing[:, None]
+        return float(0.5 * np.linalg.norm(boxes, axis=1).max() + np.max(self.clearance))
+
+    def kernel_arguments(self) -> tuple:
+        """``(transforms, clearance, push tolerance mm, *fields.arrays())`` for the kernels;
+        :data:`NO_SOLIDS` has the same types and no bone."""
+        tolerance = 1e-3 * float(self.fields.spacing.min()) if len(self.fields) else 0.0
+        return ((np.ascontiguousarray(self.transforms, dtype=np.float64),
+                 np.ascontiguousarray(self.clearance, dtype=np.float64), tolerance)
+                + self.fields.arrays())
+
+
 # ---- exact distance to a triangle surface --------------------------------------------------
 
 @njit(cache=True)
@@ -840,3 +886,7 @@ def fitted_rigid_transform(rest, posed, where="bone") -> np.ndarray:
                              f"(off by {off:.3g} mm); connect the rest bones (bones.vtm) and the "
                              "Rigid Pose Transform's PosedBones made from them")
     return transform
+
+
+NO_SOLIDS = BoneSolids(BoneFieldSet.pack([]), np.zeros((0, 3, 4)), np.zeros(0))
+"""No bone as a solid (the kernels' argument when the bones are sphere sets)."""

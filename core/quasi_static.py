@@ -13,8 +13,8 @@ Energy (g mm^2 / s^2)::
 
 The contact term is a penalty on every overlapping pair of spheres of different muscles and of
 a muscle sphere with a bone sphere (tendon spheres against bones are exempt, as in the paper),
-or, given :class:`BoneSolids`, of a muscle sphere with a bone as a solid (``max(0, r_i +
-clearance - d(c_i))`` with ``d`` the bone's signed distance: a sphere is pushed out along the
+or, given :class:`~muscle_mss.core.bone_distance.BoneSolids`, of a muscle sphere with a bone
+as a solid (``max(0, r_i + clearance - d(c_i))`` with ``d`` the bone's signed distance: a sphere is pushed out along the
 distance gradient from any depth, where a sphere past a bone's shell of spheres is pulled on
 through it by the springs: on the full demo at the most flexed pose the sphere-set solve was
 still drifting after thousands of iterations, its particles up to 85 mm apart between 250 and
@@ -26,8 +26,11 @@ differentiable, so the minimisation converges where the paper's rule makes conta
 ``w`` is :attr:`QuasiStaticSettings.contact_weight` times the largest sum of one particle's
 spring stiffnesses (260 g/s^2 for a lattice-26 particle at the Spring Builder's defaults). The
 penalty leaves an overlap of (contact force) / w at the minimum; the final collision passes of
-the paper method (:func:`muscle_mss.core.solver._project`) remove it, after the free spheres
-are pushed out of the bone solids (:func:`_push_out_of_solids`) when those are given.
+the paper method (:func:`muscle_mss.core.solver._project`, against the solids when given)
+remove it, after the free spheres are pushed out of the bone solids
+(:func:`_push_out_of_solids`); those passes also push out of the solids the free particles
+without a sphere that are not inside a bone at rest (``MSSModel.in_bone_at_rest``), which the
+minimisation leaves alone.
 
 Minimisation: L-BFGS (Liu, Bouaziz and Kavan 2017, "Quasi-Newton methods for real-time
 simulation of hyperelastic materials") whose initial inverse Hessian is ``(A + K)^-1``: ``A = L``
@@ -72,7 +75,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 from . import solver as S
 from . import spatial_hash
 from .errors import MuscleMSSError
-from .bone_distance import _sample, _to_rest, push_out_of_bones
+from .bone_distance import BoneSolids, _sample, _to_rest, push_out_of_bones
 from .mss import _add_cage_gradient, _cage_volume
 
 DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a quasi-Newton step
@@ -112,21 +115,6 @@ class QuasiStaticSettings:
     penetration_tolerance: float = S.DEFAULT_PENETRATION_TOLERANCE    # mm
     contact_weight: float = DEFAULT_CONTACT_WEIGHT
     history: int = DEFAULT_HISTORY
-
-
-@dataclass
-class BoneSolids:
-    """Bones as solids for the muscle-bone contacts (instead of their sphere sets):
-    ``fields`` a :class:`~muscle_mss.core.bone_distance.BoneFieldSet` of b bones sampled in
-    their own frames, ``transforms`` (b, 3, 4) each bone's field frame to its posed place, and
-    ``clearance`` (b,) mm that every muscle sphere keeps from the bone's surface beyond its own
-    radius (the radius of the bone's spheres, so that a sphere clear of the solid is clear of
-    the sphere set of the paper's final collision passes too). Particles inside a bone at rest
-    have no sphere (the Spring Builder's Bones input), so no solid pushes them."""
-
-    fields: object
-    transforms: np.ndarray
-    clearance: np.ndarray
 
 
 @dataclass
@@ -524,18 +512,6 @@ def _check(settings: QuasiStaticSettings) -> None:
                              "more")
 
 
-def _check_solids(solids: BoneSolids) -> None:
-    b = len(solids.fields)
-    transforms = np.asarray(solids.transforms)
-    clearance = np.asarray(solids.clearance)
-    if transforms.shape != (b, 3, 4) or not np.isfinite(transforms).all():
-        raise MuscleMSSError(f"the bone solids need one finite 3x4 transform per bone ({b}); "
-                             f"got shape {transforms.shape}")
-    if clearance.shape != (b,) or not (np.isfinite(clearance).all() and (clearance >= 0).all()):
-        raise MuscleMSSError(f"the bone solids need one finite clearance of 0 mm or more per "
-                             f"bone ({b}); got {clearance}")
-
-
 def _largest_move(step) -> float:
     """The largest particle move (mm) of ``step`` (f, 3)."""
     return float(np.sqrt(np.einsum("ij,ij->i", step, step).max(initial=0.0)))
@@ -642,7 +618,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     settings = settings or QuasiStaticSettings()
     _check(settings)
     if bone_solids is not None:
-        _check_solids(bone_solids)
+        bone_solids.check()
     S.check_history_size(settings.iterations, len(model.names))
     prep = prepared if prepared is not None else S.prepare(model)
     pre = preconditioner(model, prep)
@@ -770,6 +746,8 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         structure=settings.structure, bvh_max_depth=settings.bvh_max_depth,
         bvh_min_primitives=settings.bvh_min_primitives))
     fixed_state, lists = hashed[:-5], hashed[-5:]
+    solids = S.solid_arguments(bone_solids, x, prep)
+    solid_collided = np.zeros(len(solids[12]), dtype=np.uint8)
     collided_spheres = touching.astype(np.uint8)
     passes, left, projection_seconds = 0, 0.0, 0.0
     if settings.projection_passes > 0 and (settings.muscle_muscle or settings.muscle_bone):
@@ -778,12 +756,13 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             x, np.zeros_like(x), sphere_state, fixed_state, bvh, use_bvh,
             bool(settings.muscle_muscle), bool(settings.muscle_bone),
             int(settings.projection_passes), float(settings.penetration_tolerance), lists,
-            collided_spheres)
+            collided_spheres, solids, solid_collided)
         projection_seconds = time.perf_counter() - tick
     rank = np.empty(n, dtype=np.int64)
     rank[prep.order] = np.arange(n)
     collided_out = np.zeros(n, dtype=bool)
     collided_out[spheres.particle] = collided_spheres[:ns] > 0
+    collided_out[solids[12]] |= solid_collided > 0
     phases = {"mss": float(energy_of.seconds[0] + solve_seconds),
               "muscle_cd": float(energy_of.seconds[1]), "bone_cd": float(energy_of.seconds[2]),
               "projection": projection_seconds}

@@ -8,10 +8,15 @@ Each iteration:
 2. collision detection among the boundary spheres of different muscles and between muscle
    spheres and bone spheres, through the chosen structure (:mod:`~muscle_mss.core.spatial_hash`,
    the default, or the paper's :mod:`~muscle_mss.core.octree_bvh`); both find the same pairs;
+   or, given the bones as solids (:class:`~muscle_mss.core.bone_distance.BoneSolids`, issue
+   14), muscle spheres against each bone's signed distance (:func:`_solid_contacts`): a sphere
+   carried past a bone's shell of spheres is pushed on through it by the inner spheres, while
+   the distance gradient takes it out by the nearer side from any depth;
 3. response exactly as the paper: per colliding pair each sphere moves half the penetration along
    the centre line (the whole when the other is fixed or a bone sphere; nothing when it is fixed
-   itself); the displacements are accumulated and applied after all tests, and the particles
-   that collided get zero velocity;
+   itself; against a solid, the whole way out to its radius plus the bone's clearance along the
+   distance gradient); the displacements are accumulated and applied after all tests, and the
+   particles that collided get zero velocity;
 4. per muscle the mean displacement ``mean |x_k - x_{k-1}|`` (the paper's figures 5 and 6), the
    colliding pairs, the deepest penetration (of the pairs a response can resolve: a tendon
    attachment, fixed, sits inside its bone for good) and the elapsed seconds are recorded.
@@ -45,6 +50,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import octree_bvh, spatial_hash
+from .bone_distance import BRICK, NO_SOLIDS, BoneSolids, _push_rest, _sample, _to_rest
 from .errors import MuscleMSSError
 from .cage import muscle_cage
 from .mss import (Spheres, VolumeCages, lattice_order, make_spheres, muscle_step, now,
@@ -90,7 +96,10 @@ class MSSModel:
     ``fibre_id``, ``fibre_index`` (n,) int and optional ``fibre_grid`` (n, 2) (to order the
     particles for speed, and for the cages); ``springs`` (S, 2) int global particle indices;
     ``rest_length`` mm, ``stiffness`` g/s^2, ``damping`` g/s (S,); ``rest_positions`` (n, 3) mm,
-    the rest pose whose cage volumes the volume force keeps (omitted: ``positions``).
+    the rest pose whose cage volumes the volume force keeps (omitted: ``positions``);
+    ``in_bone_at_rest`` (n,) bool, the particles inside a bone in the rest pose (the bones as
+    solids leave them there; omitted: not known, and only the particles with a sphere are
+    kept out of the solids).
     """
 
     names: list
@@ -108,6 +117,7 @@ class MSSModel:
     damping: np.ndarray
     fibre_grid: np.ndarray | None = None
     rest_positions: np.ndarray | None = None
+    in_bone_at_rest: np.ndarray | None = None
 
 
 @dataclass
@@ -181,6 +191,7 @@ class PreparedModel:
     muscle: np.ndarray
     fixed: np.ndarray
     boundary: np.ndarray
+    in_bone_at_rest: np.ndarray | None = None   # (n,) bool, solver order, or None: not known
     cache: dict = field(default_factory=dict)   # other methods' topology data (factorisations)
 
 
@@ -201,9 +212,11 @@ def prepare(model: MSSModel) -> PreparedModel:
     fixed = np.asarray(model.fixed, dtype=bool)[order]
     inv_mass = np.where(fixed, 0.0, 1.0 / np.asarray(model.mass, dtype=np.float64)[order])
     muscle = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    in_bone = (None if model.in_bone_at_rest is None
+                else np.asarray(model.in_bone_at_rest, dtype=bool)[order])
     return PreparedModel(order, offsets, layout, _cages(model, rank), inv_mass,
                          np.asarray(model.radius, dtype=np.float64)[order], muscle, fixed,
-                         np.asarray(model.boundary, dtype=bool)[order])
+                         np.asarray(model.boundary, dtype=bool)[order], in_bone)
 
 
 def _cages(model: MSSModel, rank) -> VolumeCages:
@@ -288,10 +301,94 @@ def _tally(pair_count, pair_pen):
     return count, deepest
 
 
+# A sphere whose distance to every solid bone exceeds its reach by this much plus its move since
+# that distance was sampled, times SOLID_LIPSCHITZ, is clear of them without sampling: the
+# trilinear interpolant of a distance (1-Lipschitz) changes by at most sqrt(3) per mm within a
+# brick, and by about the coarse grid's interpolation error (well below 4 mm, the coarse
+# spacing at the default 1 mm) where a fine brick meets a coarse one.
+SOLID_LIPSCHITZ = np.sqrt(3.0)
+SOLID_SLACK_CELLS = 4.0         # fine cells: the slack in mm is this times the field's spacing
+
+
+@njit(cache=True)
+def _solid_contacts(solids):
+    """The particles of ``solids`` (:func:`solid_arguments`: every free particle not inside a
+    bone at rest, each with its sphere's radius or 0) against the bones as solids: a particle
+    closer to bone b's surface than its radius plus the bone's clearance, or inside the bone,
+    gets the displacement that takes it out to that distance along the distance gradient (the
+    whole penetration, as against a bone sphere, from whatever depth) in the state's ``disp``,
+    and ``collided`` set (:func:`_respond_solids` applies them). A particle outside a bone's
+    sampled box by its reach or more is clear of it (the field is at least the box's padding
+    there); one that has moved little since it was last found clear of every bone by a margin
+    is skipped (:data:`SOLID_LIPSCHITZ`). One thread: most particles are skipped, and a
+    parallel region costs more than the loop. Returns ``(particle-bone contacts, deepest
+    penetration mm)``."""
+    (transforms, clearance, tolerance, origin, spacing, dims, coarse_start, coarse, index_start,
+     brick_index, bricks, x, points, radius, anchor, margin, slack, disp, collided, count,
+     pen) = solids
+    for k in range(points.shape[0]):
+        count[k] = 0
+        pen[k] = 0.0
+        collided[k] = 0
+        p = points[k]
+        cx, cy, cz = x[0, p], x[1, p], x[2, p]
+        moved = np.sqrt((cx - anchor[0, k]) ** 2 + (cy - anchor[1, k]) ** 2
+                        + (cz - anchor[2, k]) ** 2)
+        if SOLID_LIPSCHITZ * moved + slack < margin[k]:
+            continue
+        clear = np.inf
+        for axis in range(3):
+            disp[axis, k] = 0.0
+        for b in range(transforms.shape[0]):
+            qx, qy, qz = _to_rest(transforms, b, cx, cy, cz)
+            reach = radius[k] + clearance[b]
+            h = spacing[b]
+            ox = max(origin[b, 0] - qx, qx - origin[b, 0] - dims[b, 0] * BRICK * h, 0.0)
+            oy = max(origin[b, 1] - qy, qy - origin[b, 1] - dims[b, 1] * BRICK * h, 0.0)
+            oz = max(origin[b, 2] - qz, qz - origin[b, 2] - dims[b, 2] * BRICK * h, 0.0)
+            away = np.sqrt(ox * ox + oy * oy + oz * oz)
+            if away > 0.0 and away >= reach:
+                clear = min(clear, away - reach)
+                continue
+            value = _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
+                            index_start, brick_index, bricks)[0]
+            if value >= reach - tolerance:
+                clear = min(clear, value - reach)
+                continue
+            clear = -np.inf
+            px, py, pz, _ = _push_rest(b, qx, qy, qz, reach, tolerance, origin, spacing, dims,
+                                       coarse_start, coarse, index_start, brick_index, bricks)
+            m = transforms[b]
+            dx, dy, dz = px - qx, py - qy, pz - qz
+            for axis in range(3):
+                disp[axis, k] += m[axis, 0] * dx + m[axis, 1] * dy + m[axis, 2] * dz
+            collided[k] = 1
+            count[k] += 1
+            pen[k] = max(pen[k], reach - value)
+        anchor[0, k], anchor[1, k], anchor[2, k] = cx, cy, cz
+        margin[k] = clear
+    return _tally(count, pen)
+
+
+@njit(cache=True)
+def _respond_solids(x, v, solids, ever):
+    """The response to :func:`_solid_contacts`: each collided particle moves by its
+    displacement (mm) and stops; ``ever`` (k,) gets it (the final passes' record)."""
+    points, disp, collided = solids[12], solids[17], solids[18]
+    for k in range(points.shape[0]):
+        if collided[k]:
+            p = points[k]
+            for axis in range(3):
+                x[axis, p] += disp[axis, k]
+                v[axis, p] = 0.0
+            ever[k] = 1
+
+
 @njit(cache=True, parallel=True)
-def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
+def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists, solids):
     """Collision detection at the gathered sphere centres: each collided sphere's displacement
-    by the paper's response into ``disp``, ``collided`` set (both cleared by the gather).
+    by the paper's response into ``disp``, ``collided`` set (both cleared by the gather); the
+    bones as sphere sets, or as solids (:func:`_solid_contacts`) when ``solids`` has bones.
     Returns ``(muscle pairs, bone pairs, deepest penetration before the response mm, seconds
     of muscle CD, seconds of bone CD, spheres whose lists were refreshed, lists)``; keep the
     returned lists (the spatial hash's candidate lists, grown when they outgrow their room)."""
@@ -304,6 +401,7 @@ def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
      node_stamp, stack, state, best_pen, best_dir, best_partner, touched, n_muscles, max_depth,
      min_primitives, no_pairs, n_pairs) = bvh
     ns = particle.shape[0]
+    use_solids = solids[0].shape[0] > 0
     t1 = now()
     mm_count = 0
     mb_count = 0
@@ -324,7 +422,7 @@ def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
                 state, best_pen, best_dir, best_partner, touched, disp, collided, no_pairs,
                 n_pairs)
         t2 = now()
-        if muscle_bone:
+        if muscle_bone and not use_solids:
             mb_count, pen = octree_bvh.bvh_pass(
                 True, n_muscles, max_depth, min_primitives, b_centres, b_radius, b_fixed,
                 perm, b_scratch, object_first, static, node_int, node_box, node_stamp, stack,
@@ -338,7 +436,7 @@ def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
                 collided, pair_count, pair_pen)
             mm_count, deepest = _tally(pair_count, pair_pen)
         t2 = now()
-        if muscle_bone:
+        if muscle_bone and not use_solids:
             found = spatial_hash.own_list_contacts(
                 centres, radius, fixed, muscle, bone_table, skin, mb_built, mb_begin, mb_end,
                 mb_idx, room, longest, pending, False, bone_centres, bone_radius, bone_object,
@@ -355,6 +453,9 @@ def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists):
                     bone_object, bone_moves, disp, collided, pair_count, pair_pen)
             mb_count, pen = _tally(pair_count, pair_pen)
             deepest = max(deepest, pen)
+    if muscle_bone and use_solids:
+        mb_count, pen = _solid_contacts(solids)
+        deepest = max(deepest, pen)
     t3 = now()
     return (mm_count, mb_count, deepest, t2 - t1, t3 - t2, refreshed,
             (mm_lists, mb_begin, mb_end, mb_idx, room))
@@ -382,12 +483,14 @@ def _first_set(flags):
 
 
 @njit(cache=True, parallel=True)
-def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, started, lists):
+def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, started, lists,
+                 solids):
     """Iterations ``first`` up to ``last`` (fewer when a termination stops the loop): the MSS
     step, :func:`_collide`, the response; each iteration's row of ``history``. Returns
     ``(status, iterations done, diverged muscle or -1, list refreshes, lists)``."""
     x, v, x_prev, offsets = mss[0], mss[1], mss[2], mss[12]
     particle, disp, collided, sphere_ptr = spheres[0], spheres[6], spheres[7], spheres[10]
+    scratch = np.zeros(solids[12].shape[0], dtype=np.uint8)
     mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
     (use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit, box) = control
     escaped = np.zeros(offsets.shape[0] - 1, dtype=np.bool_)
@@ -410,11 +513,13 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
             it += 1
             break
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = _collide(
-            spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists)
+            spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists, solids)
         rebuilds += refreshed
         t3 = now()
         # the response: apply the displacements, stop the collided particles; each muscle's
         # mean particle displacement of the iteration, mean |x - x_prev|
+        if muscle_bone:
+            _respond_solids(x, v, solids, scratch)
         for m in prange(offsets.shape[0] - 1):
             for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
                 if collided[s]:
@@ -449,7 +554,7 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
 
 @njit(cache=True, parallel=True)
 def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, passes,
-             tolerance, lists, ever_collided):
+             tolerance, lists, ever_collided, solids, solid_ever):
     """Collision passes without the MSS step (:func:`_collide` and the response) until no
     pair penetrates more than ``tolerance`` mm, at most ``passes``. A response moves the
     spheres of a pair apart as measured before it; when a sphere is pressed between two
@@ -460,7 +565,8 @@ def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, pa
     below :data:`PROGRESS` times its least so far: a sphere wedged between two bones (a knee
     joint gap narrower than the sphere) is pushed back and forth and cannot be freed, while the
     pushes of the overlaps that can be resolved shrink geometrically.
-    ``ever_collided`` (n_spheres,) gets the spheres that collided in any pass. Returns
+    ``ever_collided`` (n_spheres,) gets the spheres that collided in any pass, ``solid_ever``
+    the particles of ``solids`` (as for :func:`_collide`) that met a solid bone. Returns
     ``(passes run, deepest penetration left mm, lists)``: the deepest left is that found by
     the last pass before its response, 0 when nothing collided."""
     particle, centres, disp, collided = spheres[0], spheres[5], spheres[6], spheres[7]
@@ -472,18 +578,25 @@ def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, pa
         for s in prange(particle.shape[0]):
             _gather_sphere(s, x, particle, centres, disp, collided)
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = _collide(
-            spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists)
+            spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists, solids)
         done += 1
         for s in prange(particle.shape[0]):
             if collided[s]:
                 ever_collided[s] = 1
                 _respond_sphere(s, x, v, particle, disp)
+        if muscle_bone:
+            _respond_solids(x, v, solids, solid_ever)
         if deepest <= tolerance:
             break
         push = 0.0
         for s in range(particle.shape[0]):
             if collided[s]:
                 push += np.sqrt(disp[0, s] ** 2 + disp[1, s] ** 2 + disp[2, s] ** 2)
+        solid_disp, solid_collided = solids[17], solids[18]
+        for k in range(solid_collided.shape[0]):
+            if muscle_bone and solid_collided[k]:
+                push += np.sqrt(solid_disp[0, k] ** 2 + solid_disp[1, k] ** 2
+                                + solid_disp[2, k] ** 2)
         if push < PROGRESS * best:
             best = push
             since_best = 0
@@ -645,16 +758,21 @@ def collision_spheres(prep: PreparedModel, bone_centres=None, bone_radius=None, 
 
 def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
           settings: SolverSettings | None = None, progress=None,
-          prepared: PreparedModel | None = None) -> SolveResult:
+          prepared: PreparedModel | None = None,
+          bone_solids: BoneSolids | None = None) -> SolveResult:
     """Relax the posed model with collisions (see the module docstring).
 
     ``bone_centres`` (b, 3) mm, ``bone_radius`` (b,) mm, ``bone_id`` (b,) int, sorted, from
     :func:`muscle_mss.core.bone_spheres.bone_spheres` on the posed bones (omit for no bones);
     ``progress(fraction) -> bool`` is called between chunks, True aborts with a
-    :class:`MuscleMSSError`; ``prepared`` from :func:`prepare` for this model's topology.
+    :class:`MuscleMSSError`; ``prepared`` from :func:`prepare` for this model's topology;
+    ``bone_solids``: the bones as solids for the muscle-bone contacts, of the iterations and
+    the final passes (then give no bone spheres: they would be ignored).
     """
     settings = settings or SolverSettings()
     _check_settings(settings)
+    if bone_solids is not None:
+        bone_solids.check()
     problem = stability_problem(model, settings.time_step)
     if problem:
         raise MuscleMSSError(problem)
@@ -673,6 +791,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
 
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
+    solids = solid_arguments(bone_solids, x, prep)
     hashed = _hash_state(spheres, settings.structure == "spatial hash")
     bvh = _bvh_state(spheres, settings)
 
@@ -684,7 +803,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
                TERMINATIONS.index(settings.termination), float(settings.displacement_threshold),
                float(settings.time_budget),
                _divergence_limits(posed, offsets, 2.0 * (max(spheres.radius, default=0.0)
-                                                         + max(spheres.bone_radius, default=0.0))),
+                                                         + max(spheres.bone_radius, default=0.0))
+                                  + (bone_solids.reach if bone_solids is not None else 0.0)),
                _world_box(posed, spheres.bone_centres))
 
     started = time.perf_counter()
@@ -698,7 +818,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         tick = time.perf_counter()
         status, done, bad, more, lists = _solve_chunk(
             mss, sphere_state, fixed_state, bvh, history, control, done, min(cap, done + chunk),
-            started, lists)
+            started, lists, solids)
         rebuilds += more
         per_iteration = (time.perf_counter() - tick) / max(done - before, 1)
         chunk = int(min(max(CHUNK_SECONDS / max(per_iteration, 1e-9), 1), 1000))
@@ -715,19 +835,21 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
 
     mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
     collided_spheres = sphere_state[7][:ns].copy()
+    solid_collided = solids[18].copy()
     passes, left = 0, 0.0
     if settings.projection_passes > 0 and (settings.muscle_muscle or settings.muscle_bone):
         tick = time.perf_counter()
         passes, left, lists = _project(
             x, v, sphere_state, fixed_state, bvh, control[0], control[1], control[2],
             int(settings.projection_passes), float(settings.penetration_tolerance), lists,
-            collided_spheres)
+            collided_spheres, solids, solid_collided)
         phases[3] += time.perf_counter() - tick
 
     rank = np.empty(n, dtype=np.int64)
     rank[prep.order] = np.arange(n)
     collided = np.zeros(n, dtype=bool)
     collided[spheres.particle] = collided_spheres > 0
+    collided[solids[12]] |= solid_collided > 0
     stopped_by = {RUNNING: "iterations", CONVERGED: "displacement threshold",
                   OUT_OF_TIME: "time budget"}[status]
     return SolveResult(
@@ -737,6 +859,39 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         {"mss": float(phases[0]), "muscle_cd": float(phases[1]), "bone_cd": float(phases[2]),
          "projection": float(phases[3])},
         stopped_by, rebuilds, passes, left)
+
+
+def solid_points(prep: PreparedModel) -> np.ndarray:
+    """(k,) int64, solver order: the particles the bones as solids keep out — every free
+    particle not inside a bone at rest (``in_bone_at_rest``; a particle embedded in its
+    attachment bone belongs there), with or without a sphere; when the model does not say
+    which particles are inside a bone at rest, the free particles with a sphere."""
+    if prep.in_bone_at_rest is None:
+        keep = prep.boundary & (prep.radius > 0.0)
+    else:
+        keep = ~prep.in_bone_at_rest
+    return np.flatnonzero(keep & ~prep.fixed).astype(np.int64)
+
+
+def solid_arguments(bone_solids: BoneSolids | None, x: np.ndarray,
+                    prep: PreparedModel) -> tuple:
+    """The kernels' ``solids`` argument: ``bone_solids`` (checked; None: no bone as a solid),
+    the positions ``x`` (3, n) mm they read, the particles of :func:`solid_points` with their
+    sphere radii (0: none), the skip state of :func:`_solid_contacts` (each particle's position
+    (3, k) mm when last sampled and its least clearance of the bones then, mm), the slack (mm)
+    and the contact state (displacement (3, k) mm, collided (k,), contacts (k,), deepest (k,)
+    mm)."""
+    points = solid_points(prep) if bone_solids is not None else np.zeros(0, np.int64)
+    if bone_solids is None:
+        bone_solids = NO_SOLIDS
+    bone_solids.check()
+    k = len(points)
+    slack = (SOLID_SLACK_CELLS * float(bone_solids.fields.spacing.max())
+             if len(bone_solids.fields) else 0.0)
+    return bone_solids.kernel_arguments() + (
+        x, points, prep.radius[points].copy(), np.zeros((3, k)), np.full(k, -np.inf), slack,
+        np.zeros((3, k)), np.zeros(k, dtype=np.uint8), np.zeros(k, dtype=np.int64),
+        np.zeros(k))
 
 
 def _hash_state(spheres: Spheres, used: bool) -> tuple:

@@ -17,6 +17,8 @@ BONE_WEIGHTS = "bone_weights"        # float64 x B, blend weight of each bone (p
 VELOCITY = "velocity"                # float64 x3, mm/s (solver)
 DISPLACEMENT = "displacement"        # float64 x3, solved minus posed position, mm (solver)
 COLLIDED = "collided"                # uint8, collided in the last iteration (solver)
+IN_BONE_AT_REST = "in_bone_at_rest"  # uint8, 1 inside a bone in the rest pose (pose filter): the
+#                                      solver's solid bones keep the other free particles out
 
 # Cell data of the spring cells (two-point lines) of a muscle block.
 REST_LENGTH = "rest_length"          # float64, mm

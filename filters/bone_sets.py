@@ -24,9 +24,10 @@ from collections import OrderedDict
 import numpy as np
 
 from muscle_mss.core.bone_distance import (BoneFieldSet, bone_distance_field,
-                                           exact_signed_distance)
+                                           exact_signed_distance, signed_distances)
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
+from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
 
 from . import vtk_arrays as V
 
@@ -176,16 +177,31 @@ def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
     return np.concatenate(centres), np.concatenate(radii), np.concatenate(ids)
 
 
-def inside_bones(points, bones, where: str = "bones") -> np.ndarray:
-    """(n,) bool: which of ``points`` (n, 3) mm lie inside a bone of the multiblock (exact
-    signed distance to its surface below 0). A bone whose surface is not closed and
-    consistently oriented has no inside and is skipped."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    inside = np.zeros(len(points), dtype=bool)
+def clear_of_bones(centres, radii, bones, where: str = "bones"):
+    """``(radii (n,) mm, inside (n,) bool)``: the ``radii`` of muscle spheres at ``centres``
+    (n, 3) mm, in the rest pose of the bones multiblock ``bones``, lowered until no sphere
+    overlaps a bone sphere
+    (:func:`bone_sphere_set` at the default spacing, the MSS Collision Solver's sphere sets) nor
+    reaches into a bone as a solid (its cached distance field, :func:`cached_bone_field`, as
+    the solver's solid contacts see it); a particle inside a bone gets 0 (no sphere: it is
+    embedded in the bone, near a tendon, and the solver would push it out of the bone it
+    belongs to); ``inside`` says which (the exact signed distance below 0). Then nothing moves a
+    rest pose: DESIGN §6, no two spheres of different objects overlap at rest. Applying it to
+    cleared radii changes nothing, so the Spring Builder (with its Bones input) and the Rigid
+    Pose Transform (always) both apply it. A bone that is not closed and consistently oriented
+    has no inside: only its spheres count."""
+    centres = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
+    bone_centres, bone_radii, _ = bone_sphere_set(bones, where=where)
+    radii = clear_of_obstacles(centres, radii, bone_centres, bone_radii)
+    inside = np.zeros(len(centres), dtype=bool)
     for name, block in V.polydata_blocks(bones, where, "a triangle surface"):
         block_where = f"{where} block '{name}'"
         vertices, triangles = V.points_of(block), V.triangles_of(block, block_where)
         if surface_problems(vertices, triangles):
             continue
-        inside |= exact_signed_distance(vertices, triangles, points, where=block_where) < 0.0
-    return inside
+        field, transform = cached_bone_field(vertices, triangles, block_where)
+        distance = signed_distances(BoneFieldSet.pack([field]), centres, transform[None])[0]
+        radii = np.minimum(radii, np.maximum(distance[:, 0], 0.0) * (1.0 - SHRINK_MARGIN))
+        inside |= exact_signed_distance(vertices, triangles, centres, where=block_where) < 0.0
+    radii[inside] = 0.0
+    return radii, inside

@@ -2,10 +2,12 @@
 paper §3.1 and §3.3).
 
 Inputs: ``PosedModel`` (the Rigid Pose Transform's model: points = posed particles; point data
-``rest_position``, ``fibre_id``, ``fibre_index``, ``fixed``, ``boundary``, ``radius``, ``mass``;
+``rest_position``, ``fibre_id``, ``fibre_index``, ``fixed``, ``boundary``, ``radius``, ``mass``,
+optional ``in_bone_at_rest`` (the particles the solid bones leave where they are);
 springs = two-point line cells with cell data ``rest_length``, ``stiffness``, ``damping``) and
-``PosedBones`` (the posed bone surfaces, sampled into spheres by
-:func:`muscle_mss.core.bone_spheres.bone_spheres` every run).
+``PosedBones`` (the posed bone surfaces: solids, each bone's signed distance field, by default;
+or spheres sampled by :func:`muscle_mss.core.bone_spheres.bone_spheres`; both sampled once per
+bone shape and moved with the bone, :mod:`~muscle_mss.filters.bone_sets`).
 
 Outputs: ``SolvedModel`` — every input block and array kept, points = solved positions, plus
 ``velocity`` (mm/s), ``displacement`` (solved - posed, mm) and ``collided`` (uint8, in the last
@@ -30,10 +32,13 @@ adds a ``residual`` column (mm, per iteration); both tables carry field data ``m
 quasi-static solve prints a warning (ParaView's output messages). Warm start (``WarmStart``):
 the filter keeps its last quasi-static solution; asked for another pose of the same model with
 the same properties, it starts from the posed particles plus the last solution's displacement
-from its own posed particles instead of from the posed state. Bones (``BoneContact``, quasi-static
-method): as solids by default (:func:`solid_bones`: each bone's signed distance field, sampled
-once per bone shape by :func:`~muscle_mss.filters.bone_sets.bone_solids`), or as the paper's
-sphere sets; the paper relaxation and the final collision passes use the sphere sets.
+from its own posed particles instead of from the posed state. Bones (``BoneContact``, both
+methods, the iterations and the final collision passes): as solids by default
+(:func:`solid_bones`: each bone's signed distance field, sampled once per bone shape by
+:func:`~muscle_mss.filters.bone_sets.bone_solids`; a muscle sphere is pushed out along the
+distance gradient from any depth), or as the paper's sphere sets (a sphere carried past a
+bone's shell of spheres is pushed on through it; the Table 1 baseline). The solids are the
+default because they are also the faster (``benchmarks/results/bone_contact.md``).
 """
 from __future__ import annotations
 
@@ -45,6 +50,7 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow
 
 from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import solver as S
+from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError
 
@@ -63,14 +69,12 @@ METHODS = (Q.METHOD, "paper relaxation")
 BONE_CONTACTS = ("solid", "sphere set")
 
 
-def solid_bones(posed_bones, bones) -> Q.BoneSolids:
-    """The posed bones multiblock as solids for the quasi-static contacts, each keeping the
-    largest radius of its spheres ``bones`` (``(centres, radii, bone)`` of
-    :func:`bone_sphere_set`) as clearance."""
+def solid_bones(posed_bones) -> BoneSolids:
+    """The posed bones multiblock as solids for the solvers' contacts. A muscle sphere may
+    touch a solid bone (clearance 0): the sphere sets' radius thickens the bones by the
+    spacing only because a shell of spheres needs it to be closed."""
     fields, transforms = bone_solids(posed_bones, BONES)
-    _, radii, bone = bones
-    clearance = np.array([radii[bone == b].max(initial=0.0) for b in range(len(fields))])
-    return Q.BoneSolids(fields, transforms, clearance)
+    return BoneSolids(fields, transforms, np.zeros(len(fields)))
 
 
 def _muscle_block(name, block):
@@ -86,6 +90,10 @@ def _muscle_block(name, block):
         raise MuscleMSSError(f"{where}: particle {bad} has a NaN or infinite position")
     data = {key: V.point_array(block, key, where) for key in POINT_ARRAYS}
     grid = V.point_array(block, A.FIBRE_GRID, where, required=False)
+    in_bone = V.point_array(block, A.IN_BONE_AT_REST, where, required=False)
+    if in_bone is not None and in_bone.size != n:
+        raise MuscleMSSError(f"{where}: array '{A.IN_BONE_AT_REST}' must have one value per "
+                             "particle")
     offsets, connectivity = V.lines_of(block)
     sizes = np.diff(offsets)
     if (sizes != 2).any():
@@ -123,7 +131,8 @@ def _muscle_block(name, block):
     if len(springs) and (springs[:, 0] == springs[:, 1]).any():
         bad = int(np.flatnonzero(springs[:, 0] == springs[:, 1])[0])
         raise MuscleMSSError(f"{where}: spring {bad} joins particle {springs[bad, 0]} to itself")
-    return {"points": points, "springs": springs, "grid": grid, **data, **cells}
+    return {"points": points, "springs": springs, "grid": grid, "in_bone": in_bone, **data,
+            **cells}
 
 
 class MSSCollisionSolver(MuscleFilter):
@@ -133,8 +142,8 @@ class MSSCollisionSolver(MuscleFilter):
     HELP = ("Relaxes the posed mass-spring model of every muscle (Hooke springs with damping, "
             "a viscous drag, each muscle's resistance to a change of its volume, semi-implicit "
             "Euler, fixed tendon particles stay) while pushing the boundary "
-            "particles' spheres out of other muscles' spheres and out of the bones (sampled into "
-            "spheres on their surface). Outputs the solved model (velocity, displacement, "
+            "particles' spheres out of other muscles' spheres and out of the bones (solids by "
+            "default, or spheres on their surface). Outputs the solved model (velocity, displacement, "
             "collided added) and a table of the mean displacement of each muscle, the colliding "
             "pairs, the deepest penetration and the elapsed seconds per iteration: plot it with "
             "a Line Chart View to see the convergence.")
@@ -235,16 +244,17 @@ class MSSCollisionSolver(MuscleFilter):
                  "Deepest overlap (mm) of two spheres of different objects at which the final "
                  "collision passes stop.", minimum=0.0, group="Collisions"),
         Property("BoneContact", "enum", BONE_CONTACTS[0],
-                 "Quasi-static method: how the bones push muscle spheres. solid: each bone is a "
-                 "solid (its signed distance, sampled once per bone shape, about 10 s for the "
-                 "demo thigh, and moved with the bone); a sphere is pushed out along the "
-                 "distance gradient from any depth until it is its radius plus the bone "
-                 "spheres' radius outside the surface. sphere set: the paper's spheres on the "
-                 "bone surface (a sphere carried past that shell can be pulled through it). The "
-                 "paper relaxation and the final collision passes always use the sphere set.",
+                 "How the bones push muscle spheres (both methods, iterations and final "
+                 "collision passes). solid (the default, and the faster): each bone is a solid "
+                 "(its signed distance, sampled once per bone shape, about 10 s for the demo "
+                 "thigh, and moved with the bone); a sphere is pushed out along the distance "
+                 "gradient from any depth until it touches the surface. sphere set: the "
+                 "paper's spheres on the bone surface (BoneSphereSpacing; a sphere carried past "
+                 "that shell is pushed on through it by its inner spheres).",
                  choices=BONE_CONTACTS, group="Collisions"),
         Property("BoneSphereSpacing", "double", DEFAULT_SPACING,
-                 "Least distance between bone sphere centres, and their radius (mm). The bones "
+                 "BoneContact 'sphere set': least distance between bone sphere centres, and "
+                 "their radius (mm). The bones "
                  "are sampled into about 0.62 * area / spacing^2 spheres (Poisson-disc): the "
                  "default gives about 8,600 on the demo pelvis (58,000 mm^2), the paper's "
                  "density (8527 spheres for a pelvis).",
@@ -278,9 +288,13 @@ class MSSCollisionSolver(MuscleFilter):
                                  "muscle")
         parts = [_muscle_block(name, block) for name, block in blocks]
         model = self._model([name for name, _ in blocks], parts)
-        bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
+        bones, solids = (None, None, None), None
+        if self.choice("BoneContact") != "solid":
+            bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
+        elif self.value("MuscleBone"):
+            solids = solid_bones(inputs[1])
         prepared = self._prepare(model)
-        result = self._solve(model, bones, prepared, inputs[1])
+        result = self._solve(model, bones, solids, prepared)
         items = []
         for m, ((name, block), part) in enumerate(zip(blocks, parts)):
             lo, hi = model.offsets[m], model.offsets[m + 1]
@@ -334,23 +348,21 @@ class MSSCollisionSolver(MuscleFilter):
             projection_passes=self.value("ProjectionPasses"),
             penetration_tolerance=self.value("PenetrationTolerance"))
 
-    def _solve(self, model: S.MSSModel, bones, prepared: S.PreparedModel, posed_bones):
-        """The chosen method's solve; the quasi-static one warm started from the last solution
-        when the model (topology, rest state) and the properties are unchanged, against the
-        bones as solids when BoneContact says so (``posed_bones`` the input multiblock)."""
+    def _solve(self, model: S.MSSModel, bones, solids, prepared: S.PreparedModel):
+        """The chosen method's solve against the bone spheres ``bones`` (``(centres, radii,
+        bone)`` or Nones) or the bones as solids ``solids``; the quasi-static one warm started
+        from the last solution when the model (topology, rest state) and the properties are
+        unchanged."""
         progress = lambda f: self.progress(0.05 + 0.9 * f)  # noqa: E731
         if self.choice("Method") != Q.METHOD:
             return S.solve(model, *bones, settings=self.settings(), progress=progress,
-                           prepared=prepared)
+                           prepared=prepared, bone_solids=solids)
         settings = self.quasi_static_settings()
         key = (self._prepared_key, repr(settings), self.value("BoneSphereSpacing"),
                self.choice("BoneContact"))
         start = None
         if self.value("WarmStart") and self._last is not None and self._last[0] == key:
             start = model.positions + (self._last[2] - self._last[1])
-        solids = None
-        if self.choice("BoneContact") == "solid" and settings.muscle_bone:
-            solids = solid_bones(posed_bones, bones)
         result = Q.solve(model, *bones, settings=settings, progress=progress,
                          prepared=prepared, start=start, bone_solids=solids)
         self._last = (key, np.array(model.positions, dtype=np.float64), result.positions)
@@ -368,12 +380,16 @@ class MSSCollisionSolver(MuscleFilter):
         if all(p["grid"] is not None for p in parts):
             grid = np.concatenate([p["grid"].reshape(len(p["points"]), -1) for p in parts])
         springs = np.concatenate([p["springs"] + offsets[m] for m, p in enumerate(parts)])
+        in_bone = None
+        if all(p["in_bone"] is not None for p in parts):
+            in_bone = np.concatenate([p["in_bone"].reshape(-1) != 0 for p in parts])
         return S.MSSModel(names, offsets, cat("points"), cat(A.FIXED) != 0,
                           cat(A.MASS, np.float64), cat(A.BOUNDARY) != 0,
                           cat(A.RADIUS, np.float64), cat(A.FIBRE_ID, np.int64),
                           cat(A.FIBRE_INDEX, np.int64), springs, cat(A.REST_LENGTH, np.float64),
                           cat(A.STIFFNESS, np.float64), cat(A.DAMPING, np.float64), grid,
-                          np.concatenate([p[A.REST_POSITION].reshape(-1, 3) for p in parts]))
+                          np.concatenate([p[A.REST_POSITION].reshape(-1, 3) for p in parts]),
+                          in_bone)
 
     def _prepare(self, model: S.MSSModel) -> S.PreparedModel:
         """The particle order and spring layout, reused while the model's topology and spring
@@ -383,8 +399,10 @@ class MSSCollisionSolver(MuscleFilter):
                       model.damping, model.fixed, model.mass, model.boundary, model.radius,
                       model.fibre_id, model.fibre_index, model.rest_positions):
             digest.update(np.ascontiguousarray(array).tobytes())
-        if model.fibre_grid is not None:
-            digest.update(np.ascontiguousarray(model.fibre_grid).tobytes())
+        for label, optional in ((b"grid", model.fibre_grid),
+                                (b"in bone", model.in_bone_at_rest)):
+            if optional is not None:
+                digest.update(label + np.ascontiguousarray(optional).tobytes())
         key = digest.hexdigest()
         if key != self._prepared_key:
             self._prepared = S.prepare(model)

@@ -42,7 +42,8 @@ SUMMARY_COLUMNS = ("time", "muscle", "rest_volume", "volume", "volume_error_pct"
                    "free_particle_bone_depth_mm", "free_particles_new_in_bone",
                    "free_particle_new_in_bone_depth_mm", "iterations", "converged", "seconds")
 """``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
-other objects (:mod:`muscle_mss.core.penetration`); ``new_in_bone_*``: deformed surface vertices
+other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
+(``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed surface vertices
 inside a bone they were outside at rest, before and after the MVC Surface Deformer pushes them
 out; ``free_particle*``: solved particles that are not tendon attachments with their centre
 inside a bone, and the deepest (by the bones' signed distance fields), all of them and those
@@ -150,8 +151,9 @@ class TimePointResult:
 
 def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     """Run the pipeline at time point ``index`` and collect its outputs and summary rows."""
+    from muscle_mss.core.bone_distance import signed_distances
     from muscle_mss.core.penetration import max_penetration_pairs
-    from .bone_sets import bone_sphere_set
+    from .bone_sets import bone_solids, bone_sphere_set
     t = p.times[index]
     start = wallclock.perf_counter()
     particles = _copy(update_at(p.solver, 0, t))
@@ -174,10 +176,20 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
         radii.append(radius[sphere])
         owner.append(np.full(sphere.sum(), k))
         fixed.append(V.point_array(block, A.FIXED).astype(bool)[sphere])
-    bone_centres, bone_radii, _ = bone_sphere_set(bones, p.solver.value("BoneSphereSpacing"), "posed bones")
-    penetration = max_penetration_pairs(
-        np.concatenate(centres), np.concatenate(radii), np.concatenate(owner), len(names),
-        bone_centres, bone_radii, np.concatenate(fixed))
+    centres, radii, owner, fixed = map(np.concatenate, (centres, radii, owner, fixed))
+    if p.solver.choice("BoneContact") == "solid":
+        # the bones as the solver saw them: solids, which a sphere may touch
+        penetration = max_penetration_pairs(centres, radii, owner, len(names), fixed=fixed)
+        if p.solver.value("MuscleBone") and (~fixed).any():
+            fields, transforms = bone_solids(bones, "posed bones")
+            depth = radii[~fixed] - signed_distances(fields, centres[~fixed], transforms)[0].min(
+                axis=1)
+            np.maximum.at(penetration, owner[~fixed], np.maximum(depth, 0.0))
+    else:
+        bone_centres, bone_radii, _ = bone_sphere_set(bones, p.solver.value("BoneSphereSpacing"),
+                                                      "posed bones")
+        penetration = max_penetration_pairs(centres, radii, owner, len(names), bone_centres,
+                                            bone_radii, fixed)
     in_bone = free_particles_in_bones(p, particles, bones)
 
     fibre_stats = {}

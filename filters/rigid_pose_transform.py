@@ -3,7 +3,10 @@
 
 The motion table sets the filter's time steps, so the ParaView time slider, pvpython's
 ``UpdatePipeline(t)`` and an animation drive it. The blend weights depend only on the rest
-inputs and the weight properties; they are computed once and reused for every time.
+inputs and the weight properties; they are computed once and reused for every time, as are
+the model's collision radii cleared of the rest bones (issue 14: the same clearing as the Spring
+Builder's with its Bones input, so that a pipeline built without that input does not push
+muscle spheres out of the bones at rest and solves the same).
 """
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ from muscle_mss.core.scene import BONES_FILE
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import SDDP, MuscleFilter, Port
+from .bone_sets import clear_of_bones
 from .properties import Property
 from .scene_io import check_motion_cells, motion_rows_from_table
 
@@ -36,6 +40,23 @@ def _finite(rest, where: str) -> np.ndarray:
         raise MuscleMSSError(f"{where}: point {int(np.flatnonzero(bad)[0])} has a NaN or infinite "
                              "rest coordinate; every coordinate must be finite")
     return rest
+
+
+def _bone_clearance(model_items, model_rest, bones) -> list:
+    """Per model block ``(radius cleared of the rest bones or None, inside a bone at rest
+    (n,) bool)`` (:func:`~muscle_mss.filters.bone_sets.clear_of_bones`); the radius is None
+    for every block when a block has no ``radius`` (a model not from the Spring Builder)."""
+    if not model_items:
+        return []
+    radii = [V.point_array(block, A.RADIUS, f"Model block '{name}'", required=False,
+                           dtype=np.float64) for name, block in model_items]
+    given = all(r is not None and r.size == len(rest) for r, rest in zip(radii, model_rest))
+    rest = np.concatenate(model_rest)
+    cleared, inside = clear_of_bones(
+        rest, np.concatenate(radii).ravel() if given else np.zeros(len(rest)), bones, BONES_FILE)
+    ends = np.cumsum([len(r) for r in model_rest])[:-1]
+    return [(r if given else None, i) for r, i in zip(np.split(cleared, ends),
+                                                      np.split(inside, ends))]
 
 
 def _attached_bones(block, rest, bone_names, bone_surfaces, labels, where: str):
@@ -94,7 +115,12 @@ class RigidPoseTransform(MuscleFilter):
             "on average to that end of the muscle. Advertises the motion's times as the "
             "pipeline's time steps. Adds the point array bone_weights (one column per bone, in "
             "bones.vtm order; one-hot for attached particles) and the field data bone_names, "
-            "origin_bone and insertion_bone.")
+            "origin_bone and insertion_bone. The model's radius array is cleared of the rest "
+            "bones as the Spring Builder clears it with its Bones input (a particle inside a "
+            "bone at rest gets no sphere; no sphere reaches into a bone at rest), so the "
+            "rest pose stays at rest whether or not the Spring Builder's Bones is connected; "
+            "the point array in_bone_at_rest marks the particles inside a bone at rest (the "
+            "solver keeps every other free particle out of the bones as solids).")
     INPUTS = (
         Port("Model", "vtkMultiBlockDataSet",
              "The mass-spring model in the rest pose, one block per muscle (Spring Builder)."),
@@ -213,6 +239,7 @@ class RigidPoseTransform(MuscleFilter):
                 raise MuscleMSSError(f"{where}: array '{A.REST_POSITION}' must have 3 components "
                                      "and one tuple per particle")
             model_rest.append(_finite(rest, where))
+        clearance = _bone_clearance(model_items, model_rest, bones)
         surface_rest = [_finite(V.points_of(block), f"Surfaces block '{name}'")
                         for name, block in surface_items]
         every = model_rest + surface_rest
@@ -242,6 +269,7 @@ class RigidPoseTransform(MuscleFilter):
             "weights": weights,
             "attached": {b: np.flatnonzero(attached == b) for b in np.unique(attached[rows])},
             "ends": ends,
+            "clearance": clearance,
             "model": ranges[:len(model_rest)],
             "surfaces": ranges[len(model_rest):],
         }
@@ -283,9 +311,12 @@ class RigidPoseTransform(MuscleFilter):
             return out
 
         model_out = posed(model_items, rest["model"])
-        for (_, moved), ends in zip(model_out, rest["ends"]):
+        for (_, moved), ends, (radii, inside) in zip(model_out, rest["ends"], rest["clearance"]):
             for array, bone in ends.items():
                 V.set_field(moved, array, bone)
+            if radii is not None:
+                V.set_point_array(moved, A.RADIUS, radii)
+            V.set_point_array(moved, A.IN_BONE_AT_REST, inside.astype(np.uint8))
         V.fill_multiblock(outputs[0], model_out)
         V.fill_multiblock(outputs[1], [
             (name, V.with_points(block, transform_rigid(points, matrices[b])))

@@ -15,11 +15,14 @@ the same order, each a vtkPolyData with
 The rest pose is the ``rest_position`` array when present, else the points. Boundary particles
 and radii follow :mod:`muscle_mss.core.radii`; the radii of all muscles are shrunk together so
 that no two spheres of different muscles overlap in the rest pose (with either radius rule), and,
-with ``Bones``, so that no muscle sphere overlaps a bone sphere (the solver's bone spheres at
-:data:`~muscle_mss.core.bone_spheres.DEFAULT_SPACING`) in the rest pose: DESIGN §6, no two
-spheres of different objects overlap at rest. A particle inside a bone at rest (the scenes embed
-the ends of some fibres in their attachment bone) gets no sphere: it belongs to the bone, and
-the solver would push it out of it.
+with ``Bones``, so that no muscle sphere overlaps a bone (its sphere set or its solid) in the
+rest pose (:func:`~muscle_mss.filters.bone_sets.clear_of_bones`): DESIGN §6, no two spheres of
+different objects overlap at rest. A particle inside a bone at rest (the scenes embed the ends
+of some fibres in their attachment bone) gets no sphere: it belongs to the bone, and the solver
+would push it out of it. The Rigid Pose Transform clears the radii of the bones again from its
+own Bones input (clearing cleared radii changes nothing), so a pipeline built without this
+filter's Bones input solves the same; without it this output's ``radius`` is not yet cleared,
+and the filter warns.
 """
 from __future__ import annotations
 
@@ -29,8 +32,8 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow
 from muscle_mss.core import errors
 from muscle_mss.core.errors import MuscleMSSError, first_problem
 from muscle_mss.core.mesh_checks import surface_problems
-from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, clear_of_obstacles,
-                                   shrink_radii, sphere_radii)
+from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, shrink_radii,
+                                   sphere_radii)
 from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE, FibreSet, Scene, Surface
 from muscle_mss.core.springs import (delaunay_springs, knn_springs, lattice_springs,
                                      rest_lengths)
@@ -39,15 +42,18 @@ from muscle_mss.core.validation import placement_problems
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
-from .bone_sets import bone_sphere_set, inside_bones
+from .bone_sets import clear_of_bones
 from .properties import Property
 
 LAYOUTS = ("lattice-6", "lattice-26", "Delaunay", "k-NN")
 NO_BONES_WARNING = (
-    "the Bones input is not connected, so the muscle spheres are not cleared of the bones: "
-    "spheres that overlap a bone at rest are pushed out by the MSS Collision Solver even when "
-    "nothing moves, and the rest pose can crush a muscle. Connect bones.vtm (the reader that "
-    "feeds the Rigid Pose Transform's Bones) to the Spring Builder's Bones input.")
+    "the Bones input is not connected, so this output's radius array is not cleared of the "
+    "bones: muscle spheres that overlap a bone at rest keep their radius here. The Rigid Pose "
+    "Transform clears them from its own Bones input before the solve, so the solved pose is the "
+    "same; but this model fed to the MSS Collision Solver without the Rigid Pose Transform "
+    "would push those spheres out even when nothing moves and crush a muscle. Connect bones.vtm "
+    "(the reader that feeds the Rigid Pose Transform's Bones) to the Spring Builder's Bones "
+    "input to see the radii the solver uses.")
 LATTICE_NEIGHBOURHOOD = {"lattice-6": 6, "lattice-26": 26}
 PARTICLES = "particles"
 
@@ -137,19 +143,20 @@ class SpringBuilder(MuscleFilter):
             "lattice when the fibres have a fibre_grid, else the particles nearest to the muscle "
             "surface's vertices. Radii follow the paper's heuristic (or the simpler rule) and "
             "are then shrunk so that spheres of different muscles do not overlap at rest, nor "
-            "(with the optional Bones input) muscle spheres and bone spheres. Connect bones.vtm "
-            "to Bones (the same reader as the Rigid Pose Transform's Bones): without it the "
-            "filter warns, since muscle spheres that overlap a bone at rest are pushed out by "
-            "the solver even when nothing moves, and the rest pose can crush a muscle.")
+            "(with the optional Bones input) muscle spheres and bones; a particle inside a "
+            "bone at rest gets no sphere. Connect bones.vtm to Bones (the same reader as the "
+            "Rigid Pose Transform's Bones) to see here the radii the solver uses: without it "
+            "the filter warns, and the Rigid Pose Transform clears the radii of the bones "
+            "before the solve instead.")
     INPUTS = (Port("Particles", "vtkMultiBlockDataSet",
                    "particles per muscle (the Fibre Resampler's output)"),
               Port("Surfaces", "vtkMultiBlockDataSet",
                    "muscles.vtm: the rest muscle surfaces, blocks named as the particles' blocks"),
               Port("Bones", "vtkMultiBlockDataSet",
                    "bones.vtm: the rest bone surfaces (optional, but connect it); muscle spheres "
-                   "are then kept clear of the bone spheres in the rest pose. Without it a "
-                   "warning: spheres overlapping a bone at rest are pushed out by the solver "
-                   "and the rest pose can crush a muscle", optional=True))
+                   "are then kept clear of the bones in the rest pose. Without it a warning: "
+                   "the radii are cleared by the Rigid Pose Transform instead, and this "
+                   "output's radius array is not what the solver uses", optional=True))
     OUTPUTS = (Port("Model", "vtkMultiBlockDataSet",
                     "the mass-spring model per muscle: particles and springs"),)
     PROPERTIES = (
@@ -209,12 +216,8 @@ class SpringBuilder(MuscleFilter):
         if inputs[2] is None:
             vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {NO_BONES_WARNING}\n")
         else:
-            rest = np.concatenate([m["rest"] for m in models])
-            bone_centres, bone_radii, _ = bone_sphere_set(inputs[2], where=BONES_FILE)
-            radii = clear_of_obstacles(rest, radii, bone_centres, bone_radii)
-            # a particle inside a bone at rest is embedded in it (a tendon end's
-            # neighbours): no sphere, or the solver would push it out of the bone it belongs to
-            radii[inside_bones(rest, inputs[2], BONES_FILE)] = 0.0
+            radii = clear_of_bones(np.concatenate([m["rest"] for m in models]), radii,
+                                   inputs[2], BONES_FILE)[0]
         starts = np.concatenate([[0], np.cumsum(sizes)])
         items = [(name, self._output_block(name, block, model, radii[starts[i]:starts[i + 1]],
                                            layout))

@@ -122,6 +122,79 @@ def test_final_passes_free_a_sphere_pressed_between_a_bone_and_another_muscle(st
     assert result.collided.all() and np.array_equal(result.velocity, np.zeros((2, 3)))
 
 
+def box_solid(lower, upper, clearance):
+    """One box bone as a solid (rest pose) and its mesh."""
+    from muscle_mss.core.bone_distance import BoneSolids, bone_field_set
+    from test_bone_distance import box_mesh
+    box = box_mesh(lower, upper)
+    return BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance])), box
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_solid_bone_takes_spheres_out_from_any_depth_in_one_response(structure):
+    """Issue 14: a sphere 5 mm inside a box bone and one at its very centre (where the distance
+    gradient vanishes) both end their radius plus the clearance outside it after one paper
+    response; a fixed (tendon) sphere inside stays; the one 5 mm deep leaves by the near face."""
+    from muscle_mss.core.bone_distance import reference_signed_distance
+    solids, box = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], 0.5)
+    model = loose_model([[1.0, 2.0, 5.0], [0.0, 0.0, 0.0], [0.0, 0.0, -8.0]], [1.0, 1.5, 1.0],
+                        [0, 1, 2], fixed=[False, False, True])
+    settings = solver.SolverSettings(iterations=1, structure=structure, projection_passes=0)
+    result = solver.solve(model, settings=settings, bone_solids=solids)
+    depth = reference_signed_distance(*box, result.positions)
+    assert depth[0] == pytest.approx(1.0 + 0.5, abs=1e-3)
+    np.testing.assert_allclose(result.positions[0], [1.0, 2.0, 11.5], atol=1e-3)
+    # from the cube's centre the interpolated gradient leads to a corner, where the field
+    # overstates the distance by up to half its 1 mm spacing (bone_distance's docstring)
+    assert 1.5 + 0.5 - 0.05 <= depth[1] <= 1.5 + 0.5 + 0.05
+    assert np.array_equal(result.positions[2], model.positions[2])
+    assert result.collided.tolist() == [True, True, False]
+    assert result.bone_pairs[0] == 2
+    assert result.max_penetration[0] == pytest.approx(10.0 + 1.5 + 0.5, abs=1e-3)
+
+
+def test_solid_bone_keeps_out_particles_without_a_sphere_unless_inside_at_rest():
+    """With ``in_bone_at_rest`` known, every free particle is kept out of the solids, a sphere
+    to its radius, one without a sphere (interior, radius 0) to the surface; a particle inside
+    the bone at rest (embedded next to its tendon) stays where it is, and so does a fixed one.
+    Without it, only the spheres are kept out."""
+    from muscle_mss.core.bone_distance import reference_signed_distance
+    solids, box = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], 0.0)
+    positions = [[1.0, 2.0, 8.0], [2.0, -1.0, 7.0], [-3.0, 0.0, 6.0], [0.0, 3.0, -9.0]]
+    model = loose_model(positions, [1.0, 0.0, 0.0, 0.0], [0, 0, 0, 0],
+                        fixed=[False, False, False, True])
+    model.boundary[:] = [True, False, True, False]
+    model.in_bone_at_rest = np.array([False, False, True, True])
+    settings = solver.SolverSettings(iterations=1, projection_passes=0)
+    result = solver.solve(model, settings=settings, bone_solids=solids)
+    depth = reference_signed_distance(*box, result.positions)
+    assert depth[0] == pytest.approx(1.0, abs=1e-3) and depth[1] == pytest.approx(0.0, abs=1e-3)
+    np.testing.assert_allclose(result.positions[1], [2.0, -1.0, 10.0], atol=1e-3)
+    assert np.array_equal(result.positions[2:], model.positions[2:])
+    assert result.collided.tolist() == [True, True, False, False]
+    model.in_bone_at_rest = None
+    spheres_only = solver.solve(model, settings=settings, bone_solids=solids)
+    assert np.array_equal(spheres_only.positions[0], result.positions[0])
+    assert np.array_equal(spheres_only.positions[1:], model.positions[1:])
+
+
+def test_solid_bones_replace_the_sphere_sets_and_can_be_switched_off():
+    """With solids the bone spheres are not tested (a sphere set given beside them is ignored);
+    MuscleBone off turns the solids off too."""
+    solids, _ = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], 0.0)
+    model = loose_model([[0.0, 0.0, 20.0]], [1.0], [0])
+    far_sphere = (np.array([[0.0, 0.0, 20.5]]), np.array([0.5]), np.array([0]))
+    result = solver.solve(model, *far_sphere, settings=solver.SolverSettings(iterations=1),
+                          bone_solids=solids)
+    assert np.array_equal(result.positions, model.positions) and result.bone_pairs[0] == 0
+    inside = loose_model([[0.0, 0.0, 5.0]], [1.0], [0])
+    off = solver.solve(inside, settings=solver.SolverSettings(iterations=1, muscle_bone=False),
+                       bone_solids=solids)
+    assert np.array_equal(off.positions, inside.positions)
+    with pytest.raises(MuscleMSSError, match="one finite 3x4 transform per bone"):
+        solver.solve(inside, bone_solids=type(solids)(solids.fields, np.eye(3, 4), np.zeros(1)))
+
+
 def test_projection_passes_are_capped():
     model = loose_model([[0, 0, 1.8], [0, 0, 3.4]], [1.0, 1.0], [0, 1])
     bones = (np.array([[0.0, 0.0, 0.0]]), np.array([1.0]), np.array([0]))

@@ -408,5 +408,6 @@ def test_without_bones_the_spring_builder_warns_of_the_consequence():
         vtkOutputWindow.SetInstance(previous)
     alone, wired = texts
     assert "Spring Builder: the Bones input is not connected" in alone
-    assert "the rest pose can crush a muscle" in alone and "Connect bones.vtm" in alone
+    assert "radius array is not cleared of the bones" in alone and "Connect bones.vtm" in alone
+    assert "The Rigid Pose Transform clears them" in alone
     assert "Bones input" not in wired

@@ -33,6 +33,25 @@ def venv_chain(small_scene_dir):
     return motion_run.build_pipeline(small_scene_dir, {"Iterations": int(ITERATIONS)})
 
 
+
+def test_pipeline_built_by_hand_without_the_spring_builders_bones_gives_the_builders_numbers(
+        small_scene, small_scene_dir):
+    """Issue 14: the six filters added one by one through the proxies, as a GUI user does
+    (nothing asks for the Spring Builder's optional Bones), give bitwise the one-click builder's
+    solved particles, surfaces and volume errors at the most flexed pose: the Rigid Pose
+    Transform clears the radii of the bones either way."""
+    from muscle_mss.core.motion import farthest_pose_index
+    t = float(small_scene.motion.times[farthest_pose_index(small_scene.motion)])
+    result = run_script("pvpython", "hand_built_pipeline.py", small_scene_dir, t, ITERATIONS)
+    assert result["blocks"] == len(small_scene.muscles)
+    assert result["largest_move"] > 1.0                 # a real solve, not the posed state
+    assert result["solved"] == 0.0 and result["surfaces"] == 0.0
+    assert result["volume_error"] == 0.0
+    # the hand-built Spring Builder's radii are not cleared of the bones (it warns); the
+    # pose's are, exactly as the builder's Spring Builder (with Bones) cleared them
+    assert result["hand_model_radii_sum"] > result["builder_model_radii_sum"]
+    assert result["hand_posed_radii_sum"] == result["builder_model_radii_sum"]
+
 def test_plugin_builder_gives_the_venv_chain_numbers_and_time_moves_the_pose(
         small_scene, small_scene_dir, venv_chain, tmp_path):
     import numpy as np

@@ -7,6 +7,7 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 
 from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import solver as S
+from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.filters import MSSCollisionSolver
 from muscle_mss.filters import array_names as A
@@ -295,7 +296,7 @@ def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
     model, _ = chain_on_a_ball()
     box = box_mesh([-10.0, -10.0, 4.5], [3.0, 12.0, 10.5])
     clearance = 0.5
-    solids = Q.BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance]))
+    solids = BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance]))
     inside = reference_signed_distance(*box, model.positions) < 0
     assert inside.sum() == 8 and not (inside & model.fixed).any()
     result = Q.solve(model, settings=Q.QuasiStaticSettings(tolerance=1e-4, iterations=3000),
@@ -309,15 +310,40 @@ def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
     assert result.max_penetration[-1] > 1e-3
 
 
+def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side():
+    """The paper's response moves each sphere out by its own nearest face, so here the box's +x
+    face is the nearest for every particle inside it (the chain's x = 0 strand, 1 mm deep, 1.5
+    mm from the z faces): after the relaxation every free sphere is its radius plus the
+    clearance outside the box (within the final passes' PenetrationTolerance), the strand
+    that was inside on the +x side."""
+    from muscle_mss.core.bone_distance import (bone_field_set, reference_signed_distance,
+                                               signed_distances)
+    from test_bone_distance import box_mesh
+    model, _ = chain_on_a_ball()
+    box = box_mesh([-10.0, -10.0, 4.5], [1.0, 12.0, 10.5])
+    clearance = 0.5
+    solids = BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance]))
+    inside = reference_signed_distance(*box, model.positions) < 0
+    assert inside.sum() == 4 and not (inside & model.fixed).any()
+    result = S.solve(model, settings=S.SolverSettings(iterations=300), bone_solids=solids)
+    slack = S.DEFAULT_PENETRATION_TOLERANCE
+    assert result.bone_pairs[0] > 0 and result.remaining_penetration <= slack
+    free = result.positions[~model.fixed]
+    assert signed_distances(solids.fields, free)[0].min() >= 0.8 + clearance - slack
+    # the exact distance: less by the field's interpolation error near the box's edges
+    assert reference_signed_distance(*box, free).min() >= 0.8 + clearance - 0.05
+    assert (result.positions[inside, 0] > 1.0 + 0.8 + clearance - slack).all()
+
+
 def test_solid_bones_are_checked():
     from muscle_mss.core.bone_distance import bone_field_set
     from test_bone_distance import box_mesh
     model, _ = chain_on_a_ball()
     fields = bone_field_set([box_mesh([0, 0, 0], [1, 1, 1])])
     with pytest.raises(MuscleMSSError, match="one finite 3x4 transform per bone"):
-        Q.solve(model, bone_solids=Q.BoneSolids(fields, np.eye(3, 4), np.zeros(1)))
+        Q.solve(model, bone_solids=BoneSolids(fields, np.eye(3, 4), np.zeros(1)))
     with pytest.raises(MuscleMSSError, match="clearance"):
-        Q.solve(model, bone_solids=Q.BoneSolids(fields, np.eye(3, 4)[None], -np.ones(1)))
+        Q.solve(model, bone_solids=BoneSolids(fields, np.eye(3, 4)[None], -np.ones(1)))
 
 
 def test_distance_to_go_is_the_geometric_tail_of_the_residual():
