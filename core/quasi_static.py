@@ -13,12 +13,12 @@ Energy (g mm^2 / s^2)::
 
 The contact term is a penalty on every overlapping pair of spheres of different muscles and of
 a muscle sphere with a bone sphere (tendon spheres against bones are exempt, as in the paper),
-or, given :class:`~muscle_mss.core.bone_distance.BoneSolids`, of a muscle sphere with a bone
-as a solid (``max(0, r_i + clearance - d(c_i))`` with ``d`` the bone's signed distance: a sphere is pushed out along the
-distance gradient from any depth, where a sphere past a bone's shell of spheres is pulled on
-through it by the springs: on the full demo at the most flexed pose the sphere-set solve was
-still drifting after thousands of iterations, its particles up to 85 mm apart between 250 and
-4,000 iterations):
+or, given :class:`~muscle_mss.core.bone_distance.BoneSolids`, of a muscle particle with a bone
+as a solid (``max(0, r_i + clearance - d(c_i))`` with ``d`` the bone's signed distance: a
+particle is pushed out along the distance gradient from any depth, where a sphere past a bone's
+shell of spheres is pulled on through it by the springs: on the full demo at the most flexed
+pose the sphere-set solve was still drifting after thousands of iterations, its particles up to
+85 mm apart between 250 and 4,000 iterations):
 each sphere of an overlapping pair is pushed along the centre line by ``w`` times the overlap,
 the whole push going to the free sphere when the other is fixed or a bone. Unlike the paper's
 response (the deepest pair of each other object) the sum over all pairs is continuously
@@ -28,9 +28,10 @@ spring stiffnesses (260 g/s^2 for a lattice-26 particle at the Spring Builder's 
 penalty leaves an overlap of (contact force) / w at the minimum; the final collision passes of
 the paper method (:func:`muscle_mss.core.solver._project`, against the solids when given)
 remove it, after the free spheres are pushed out of the bone solids
-(:func:`_push_out_of_solids`); those passes also push out of the solids the free particles
-without a sphere that are not inside a bone at rest (``MSSModel.in_bone_at_rest``), which the
-minimisation leaves alone.
+(:func:`_push_out_of_solids`). Against the solids the penalty holds every free particle that
+is not inside a bone at rest (``MSSModel.in_bone_at_rest``), with its sphere's radius or none
+(:func:`muscle_mss.core.solver.solid_points`): an interior particle dragged into a bone is
+pushed out as well.
 
 Minimisation: L-BFGS (Liu, Bouaziz and Kavan 2017, "Quasi-Newton methods for real-time
 simulation of hyperelastic materials") whose initial inverse Hessian is ``(A + K)^-1``: ``A = L``
@@ -416,6 +417,15 @@ class _Energy:
         self.sphere_energy = np.zeros(ns)
         self.overlaps = np.zeros((ns, 2), dtype=np.int64)
         self.deepest = np.zeros(ns)
+        # the solids' penalty over every free particle not inside a bone at rest
+        self.solid_points = S.solid_points(prep) if self.solids is not None \
+            else np.zeros(0, dtype=np.int64)
+        k = len(self.solid_points)
+        self.solid_radius = prep.radius[self.solid_points].copy()
+        self.solid_energy = np.zeros(k)
+        self.solid_overlaps = np.zeros((k, 2), dtype=np.int64)
+        self.solid_deepest = np.zeros(k)
+        self.solid_fixed = np.zeros(k, dtype=np.bool_)
         self.built = np.zeros((3, ns))
         self.bone_table = None
         if self.muscle_bone:
@@ -470,21 +480,25 @@ class _Energy:
             _contacts(self.x, self.gradient, self.weight, sp.particle, sp.radius, sp.fixed,
                       *self.mm, *self.mb, sp.bone_centres, sp.bone_radius, self.sphere_energy,
                       self.overlaps, self.deepest)
-            if self.solids is not None:
-                solids = self.solids
-                _field_contacts(self.x, self.gradient, self.weight, sp.particle, sp.radius,
-                                sp.fixed, solids.clearance, solids.transforms,
-                                *solids.fields.arrays(), self.sphere_energy, self.overlaps,
-                                self.deepest)
+        if self.solids is not None and len(self.solid_points):
+            solids = self.solids
+            for array in (self.solid_energy, self.solid_overlaps, self.solid_deepest):
+                array[:] = 0
+            _field_contacts(self.x, self.gradient, self.weight, self.solid_points,
+                            self.solid_radius, self.solid_fixed,
+                            solids.clearance, solids.transforms, *solids.fields.arrays(),
+                            self.solid_energy, self.solid_overlaps, self.solid_deepest)
         self.seconds[1] += time.perf_counter() - tick
-        energy = float(self.muscle_energy.sum() + self.sphere_energy.sum())
+        energy = float(self.muscle_energy.sum() + self.sphere_energy.sum()
+                       + self.solid_energy.sum())
         return (energy, np.ascontiguousarray(self.gradient[:, self.free].T),
                 np.ascontiguousarray(self.volume_gradient[:, self.free].T))
 
     def contact_figures(self):
         """``(muscle pairs, bone pairs, deepest overlap mm)`` at the last evaluation."""
         totals = self.overlaps.sum(axis=0)
-        return int(totals[0]), int(totals[1]), float(self.deepest.max(initial=0.0))
+        return (int(totals[0]), int(totals[1] + self.solid_overlaps[:, 1].sum()),
+                float(max(self.deepest.max(initial=0.0), self.solid_deepest.max(initial=0.0))))
 
 
 # ---- the driver ------------------------------------------------------------------------------
@@ -547,20 +561,20 @@ class _Hessian0:
         return out
 
 
-def _push_out_of_solids(x, spheres, solids: BoneSolids) -> None:
-    """Move every free sphere's particle in ``x`` (3, n) out to its radius plus the clearance
-    from each bone solid (the penalty leaves an overlap of contact force / w at the minimum;
-    :func:`~muscle_mss.core.bone_distance.push_out_of_bones`, bone by bone, twice over)."""
+def _push_out_of_solids(x, points, radius, solids: BoneSolids) -> None:
+    """Move the particles ``points`` (k,) of ``x`` (3, n) out to their ``radius`` (k,) mm plus
+    the clearance from each bone solid (the penalty leaves an overlap of contact force / w at
+    the minimum; :func:`~muscle_mss.core.bone_distance.push_out_of_bones`, bone by bone, twice
+    over)."""
     b = len(solids.fields)
     for _ in range(2):
         for bone in range(b):
-            active = np.zeros((spheres.count, b), dtype=bool)
-            active[:, bone] = ~spheres.fixed
-            centres = np.ascontiguousarray(x[:, spheres.particle].T)
-            push = push_out_of_bones(solids.fields, centres,
-                                     spheres.radius + solids.clearance[bone],
+            active = np.zeros((len(points), b), dtype=bool)
+            active[:, bone] = True
+            centres = np.ascontiguousarray(x[:, points].T)
+            push = push_out_of_bones(solids.fields, centres, radius + solids.clearance[bone],
                                      solids.transforms, active)
-            x[:, spheres.particle] += push.T
+            x[:, points] += push.T
 
 
 def distance_to_go(residual) -> float:
@@ -737,8 +751,9 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
 
     x[:, free] = position.T
     touching = energy_of.deepest > 0.0
-    if energy_of.solids is not None and ns:
-        _push_out_of_solids(x, spheres, bone_solids)
+    touching_solid = energy_of.solid_deepest > 0.0
+    if len(energy_of.solid_points):
+        _push_out_of_solids(x, energy_of.solid_points, energy_of.solid_radius, bone_solids)
     # the final collision passes of the paper method remove the penalty's overlap
     use_bvh = settings.structure == "octree BVH"
     hashed = S._hash_state(spheres, not use_bvh)
@@ -748,6 +763,8 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     fixed_state, lists = hashed[:-5], hashed[-5:]
     solids = S.solid_arguments(bone_solids, x, prep)
     solid_collided = np.zeros(len(solids[12]), dtype=np.uint8)
+    if len(energy_of.solid_points):     # the same particles, the same order
+        solid_collided[:] = touching_solid
     collided_spheres = touching.astype(np.uint8)
     passes, left, projection_seconds = 0, 0.0, 0.0
     if settings.projection_passes > 0 and (settings.muscle_muscle or settings.muscle_bone):
@@ -756,7 +773,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             x, np.zeros_like(x), sphere_state, fixed_state, bvh, use_bvh,
             bool(settings.muscle_muscle), bool(settings.muscle_bone),
             int(settings.projection_passes), float(settings.penetration_tolerance), lists,
-            collided_spheres, solids, solid_collided)
+            collided_spheres, solids, solid_collided, S._world_box(x.T, spheres.bone_centres.T))
         projection_seconds = time.perf_counter() - tick
     rank = np.empty(n, dtype=np.int64)
     rank[prep.order] = np.arange(n)

@@ -149,7 +149,9 @@ class SolveResult:
     ``max_penetration`` (K,) mm (deepest before the response, of a pair not fixed on both
     sides); ``seconds`` (K,) cumulative;
     ``phase_seconds`` MSS / muscle-muscle CD / muscle-bone CD (with the response) totals of the
-    iterations, and the final projection's; ``stopped_by`` the termination that ended the loop;
+    iterations, and the final projection's (against bones as solids the muscle-bone contacts
+    run inside the MSS step's parallel region, so their time is in MSS, and muscle-bone CD is
+    their tally only); ``stopped_by`` the termination that ended the loop;
     ``projection_passes`` the collision passes after the last iteration and
     ``remaining_penetration`` (mm) the deepest overlap the last of them found (0: none; at most
     the tolerance unless the passes ran out).
@@ -268,12 +270,15 @@ def _respond_sphere(s, x, v, particle, disp):
 
 
 @njit(cache=True, parallel=True)
-def _step_and_gather(mss, spheres, box, escaped):
+def _step_and_gather(mss, spheres, box, escaped, solids, use_solids):
     """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step`), each muscle's
-    sphere centres then gathered for the collision tests — one parallel region: every region
-    costs a thread wake-up (~0.1 ms on a virtual machine), which is a large part of one
-    iteration at N = 80. ``escaped[m]`` is set when a sphere centre of muscle ``m`` lies
-    outside ``box`` (2, 3) mm or is not finite (tested while the centres are gathered)."""
+    sphere centres then gathered for the collision tests and, with ``use_solids``, its
+    particles tested against the bones as solids (:func:`_solid_points`; not timed apart: a
+    clock in a parallel region takes the GIL) — one parallel region: every region costs a
+    thread wake-up (~0.1 ms on a virtual machine), which is a large part of one iteration at
+    N = 80.
+    ``escaped[m]`` is set when a sphere centre or a particle tested against the solids of
+    muscle ``m`` lies outside ``box`` (2, 3) mm or is not finite."""
     (x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr, cage_triangles,
      rest_volume, offsets, runs_int, runs_param, lane_rest, run_ptr, scattered_int,
      scattered_param, scattered_ptr) = mss
@@ -288,6 +293,8 @@ def _step_and_gather(mss, spheres, box, escaped):
             _gather_sphere(s, x, particle, centres, disp, collided)
             for axis in range(3):
                 inside &= (centres[axis, s] >= box[0, axis]) & (centres[axis, s] <= box[1, axis])
+        if use_solids:
+            inside &= _solid_points(solids[21][m], solids[21][m + 1], solids, box)
         escaped[m] = not inside
 
 
@@ -301,40 +308,47 @@ def _tally(pair_count, pair_pen):
     return count, deepest
 
 
-# A sphere whose distance to every solid bone exceeds its reach by this much plus its move since
-# that distance was sampled, times SOLID_LIPSCHITZ, is clear of them without sampling: the
-# trilinear interpolant of a distance (1-Lipschitz) changes by at most sqrt(3) per mm within a
-# brick, and by about the coarse grid's interpolation error (well below 4 mm, the coarse
-# spacing at the default 1 mm) where a fine brick meets a coarse one.
+# A particle whose distance to every solid bone exceeds its reach by a slack plus its move since
+# that distance was sampled times SOLID_LIPSCHITZ is clear of them without sampling: the
+# trilinear interpolant of a distance (1-Lipschitz) changes by at most sqrt(3) per mm within the
+# narrow band of fine bricks (continuous across them). It jumps where a fine brick meets a
+# coarse one, by the coarse grid's interpolation error, but those faces lie farther than the
+# band (4 mm) from the surface, beyond the reach of the demo's spheres; a contact missed there
+# is found once the particle has moved, and the final passes test every particle afresh.
 SOLID_LIPSCHITZ = np.sqrt(3.0)
-SOLID_SLACK_CELLS = 4.0         # fine cells: the slack in mm is this times the field's spacing
+SOLID_SLACK_CELLS = 1.0         # fine cells: the slack in mm is this times the field's spacing
 
 
 @njit(cache=True)
-def _solid_contacts(solids):
-    """The particles of ``solids`` (:func:`solid_arguments`: every free particle not inside a
-    bone at rest, each with its sphere's radius or 0) against the bones as solids: a particle
-    closer to bone b's surface than its radius plus the bone's clearance, or inside the bone,
-    gets the displacement that takes it out to that distance along the distance gradient (the
-    whole penetration, as against a bone sphere, from whatever depth) in the state's ``disp``,
-    and ``collided`` set (:func:`_respond_solids` applies them). A particle outside a bone's
-    sampled box by its reach or more is clear of it (the field is at least the box's padding
-    there); one that has moved little since it was last found clear of every bone by a margin
-    is skipped (:data:`SOLID_LIPSCHITZ`). One thread: most particles are skipped, and a
-    parallel region costs more than the loop. Returns ``(particle-bone contacts, deepest
-    penetration mm)``."""
+def _solid_points(first, last, solids, box):
+    """Particles ``first..last-1`` of ``solids`` (:func:`solid_arguments`: every free particle
+    not inside a bone at rest, each with its sphere's radius or 0) against the bones as solids:
+    a particle closer to bone b's surface than its radius plus the bone's clearance, or inside
+    the bone, gets the displacement that takes it out to that distance along the distance
+    gradient (the whole penetration, as against a bone sphere, from whatever depth) in the
+    state's ``disp``, and ``collided`` set (:func:`_respond_solids` applies them). A particle
+    outside a bone's sampled box by its reach or more is clear of it (the field is at least the
+    box's padding there); one that has moved little since it was last found clear of every bone
+    by a margin is skipped (:data:`SOLID_LIPSCHITZ`); one outside ``box`` (2, 3) mm or not
+    finite is left alone, and the return value is then False (diverged). One muscle's particles
+    per call: a call passes the whole state tuple, too dear per particle."""
     (transforms, clearance, tolerance, origin, spacing, dims, coarse_start, coarse, index_start,
      brick_index, bricks, x, points, radius, anchor, margin, slack, disp, collided, count,
-     pen) = solids
-    for k in range(points.shape[0]):
+     pen) = solids[:21]
+    inside = True
+    for k in range(first, last):
         count[k] = 0
         pen[k] = 0.0
         collided[k] = 0
         p = points[k]
         cx, cy, cz = x[0, p], x[1, p], x[2, p]
-        moved = np.sqrt((cx - anchor[0, k]) ** 2 + (cy - anchor[1, k]) ** 2
-                        + (cz - anchor[2, k]) ** 2)
-        if SOLID_LIPSCHITZ * moved + slack < margin[k]:
+        if not ((cx >= box[0, 0]) & (cx <= box[1, 0]) & (cy >= box[0, 1]) & (cy <= box[1, 1])
+                & (cz >= box[0, 2]) & (cz <= box[1, 2])):
+            inside = False
+            continue
+        ex, ey, ez = cx - anchor[0, k], cy - anchor[1, k], cz - anchor[2, k]
+        room = margin[k] - slack
+        if room > 0.0 and SOLID_LIPSCHITZ ** 2 * (ex * ex + ey * ey + ez * ez) < room * room:
             continue
         clear = np.inf
         for axis in range(3):
@@ -367,7 +381,17 @@ def _solid_contacts(solids):
             pen[k] = max(pen[k], reach - value)
         anchor[0, k], anchor[1, k], anchor[2, k] = cx, cy, cz
         margin[k] = clear
-    return _tally(count, pen)
+    return inside
+
+
+@njit(cache=True, parallel=True)
+def _solid_contacts(solids, box):
+    """:func:`_solid_points` for every particle of ``solids``, muscle by muscle in parallel
+    (the final passes; the iterations run it inside :func:`_step_and_gather`'s region, where
+    there is no thread wake-up to pay)."""
+    ptr = solids[21]
+    for m in prange(ptr.shape[0] - 1):
+        _solid_points(ptr[m], ptr[m + 1], solids, box)
 
 
 @njit(cache=True)
@@ -454,7 +478,8 @@ def _collide(spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists, s
             mb_count, pen = _tally(pair_count, pair_pen)
             deepest = max(deepest, pen)
     if muscle_bone and use_solids:
-        mb_count, pen = _solid_contacts(solids)
+        # tested in _step_and_gather (iterations) or _solid_contacts (final passes)
+        mb_count, pen = _tally(solids[19], solids[20])
         deepest = max(deepest, pen)
     t3 = now()
     return (mm_count, mb_count, deepest, t2 - t1, t3 - t2, refreshed,
@@ -493,6 +518,7 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
     scratch = np.zeros(solids[12].shape[0], dtype=np.uint8)
     mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
     (use_bvh, muscle_muscle, muscle_bone, termination, threshold, budget, limit, box) = control
+    use_solids = solids[0].shape[0] > 0
     escaped = np.zeros(offsets.shape[0] - 1, dtype=np.bool_)
     status = RUNNING
     bad = -1
@@ -500,7 +526,7 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
     it = first
     while it < last and status == RUNNING:
         t0 = now()
-        _step_and_gather(mss, spheres, box, escaped)
+        _step_and_gather(mss, spheres, box, escaped, solids, muscle_bone and use_solids)
         t1 = now()
         bad = _first_set(escaped)
         if bad >= 0:
@@ -554,7 +580,7 @@ def _solve_chunk(mss, spheres, hashed, bvh, history, control, first, last, start
 
 @njit(cache=True, parallel=True)
 def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, passes,
-             tolerance, lists, ever_collided, solids, solid_ever):
+             tolerance, lists, ever_collided, solids, solid_ever, box):
     """Collision passes without the MSS step (:func:`_collide` and the response) until no
     pair penetrates more than ``tolerance`` mm, at most ``passes``. A response moves the
     spheres of a pair apart as measured before it; when a sphere is pressed between two
@@ -566,10 +592,12 @@ def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, pa
     joint gap narrower than the sphere) is pushed back and forth and cannot be freed, while the
     pushes of the overlaps that can be resolved shrink geometrically.
     ``ever_collided`` (n_spheres,) gets the spheres that collided in any pass, ``solid_ever``
-    the particles of ``solids`` (as for :func:`_collide`) that met a solid bone. Returns
+    the particles of ``solids`` (as for :func:`_collide`) that met a solid bone (``box`` as for
+    :func:`_solid_points`). Returns
     ``(passes run, deepest penetration left mm, lists)``: the deepest left is that found by
     the last pass before its response, 0 when nothing collided."""
     particle, centres, disp, collided = spheres[0], spheres[5], spheres[6], spheres[7]
+    solids[15][:] = -np.inf     # every particle tested afresh by the first pass
     done = 0
     deepest = 0.0
     best = np.inf
@@ -577,6 +605,8 @@ def _project(x, v, spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, pa
     while done < passes:
         for s in prange(particle.shape[0]):
             _gather_sphere(s, x, particle, centres, disp, collided)
+        if muscle_bone and solids[0].shape[0] > 0:
+            _solid_contacts(solids, box)
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = _collide(
             spheres, hashed, bvh, use_bvh, muscle_muscle, muscle_bone, lists, solids)
         done += 1
@@ -842,7 +872,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         passes, left, lists = _project(
             x, v, sphere_state, fixed_state, bvh, control[0], control[1], control[2],
             int(settings.projection_passes), float(settings.penetration_tolerance), lists,
-            collided_spheres, solids, solid_collided)
+            collided_spheres, solids, solid_collided, control[-1])
         phases[3] += time.perf_counter() - tick
 
     rank = np.empty(n, dtype=np.int64)
@@ -877,10 +907,10 @@ def solid_arguments(bone_solids: BoneSolids | None, x: np.ndarray,
                     prep: PreparedModel) -> tuple:
     """The kernels' ``solids`` argument: ``bone_solids`` (checked; None: no bone as a solid),
     the positions ``x`` (3, n) mm they read, the particles of :func:`solid_points` with their
-    sphere radii (0: none), the skip state of :func:`_solid_contacts` (each particle's position
-    (3, k) mm when last sampled and its least clearance of the bones then, mm), the slack (mm)
-    and the contact state (displacement (3, k) mm, collided (k,), contacts (k,), deepest (k,)
-    mm)."""
+    sphere radii (0: none), the skip state of :func:`_solid_points` (each particle's position
+    (3, k) mm when last sampled and its least clearance of the bones then, mm), the slack (mm),
+    the contact state (displacement (3, k) mm, collided (k,), contacts (k,), deepest (k,) mm)
+    and each muscle's first particle among them (M + 1,)."""
     points = solid_points(prep) if bone_solids is not None else np.zeros(0, np.int64)
     if bone_solids is None:
         bone_solids = NO_SOLIDS
@@ -891,7 +921,7 @@ def solid_arguments(bone_solids: BoneSolids | None, x: np.ndarray,
     return bone_solids.kernel_arguments() + (
         x, points, prep.radius[points].copy(), np.zeros((3, k)), np.full(k, -np.inf), slack,
         np.zeros((3, k)), np.zeros(k, dtype=np.uint8), np.zeros(k, dtype=np.int64),
-        np.zeros(k))
+        np.zeros(k), np.searchsorted(points, prep.offsets).astype(np.int64))
 
 
 def _hash_state(spheres: Spheres, used: bool) -> tuple:

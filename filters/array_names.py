@@ -38,6 +38,14 @@ MUSCLE = "muscle"                    # string, the muscle (block) name; last row
 
 # Field data.
 MUSCLE_NAME = "muscle_name"          # string, the block name
+# solved model blocks (MSS Collision Solver) and summary.csv: free (non-tendon) particles whose
+# centre is inside a posed bone, all and those not inside a bone at rest, and the deepest, mm
+FREE_IN_BONE = "free_particles_in_bone"
+FREE_IN_BONE_DEPTH_MM = "free_particle_bone_depth_mm"
+FREE_NEW_IN_BONE = "free_particles_new_in_bone"
+FREE_NEW_IN_BONE_DEPTH_MM = "free_particle_new_in_bone_depth_mm"
+FREE_IN_BONE_FIELDS = (FREE_IN_BONE, FREE_IN_BONE_DEPTH_MM, FREE_NEW_IN_BONE,
+                       FREE_NEW_IN_BONE_DEPTH_MM)
 ORIGIN_BONE = "origin_bone"          # string, bone of the fibres' first points (fibres.vtm,
                                      # optional; carried to the particles and the model)
 INSERTION_BONE = "insertion_bone"    # string, bone of the fibres' last points (likewise)

@@ -32,6 +32,9 @@ from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
 from . import vtk_arrays as V
 
 RIGID_TOLERANCE = 1e-9      # largest Kabsch residual / bone size that counts as the same bone
+INSIDE_TOLERANCE = 1e-3
+"""mm: a point (surface vertex, particle) counts as inside a bone when its signed distance is
+below minus this."""
 CACHE_ENTRIES = 64          # bone shapes kept (least recently used dropped)
 
 #: What the cache did since :func:`clear_bone_cache`: ``sampled`` (fresh Poisson-disc
@@ -175,6 +178,22 @@ def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
         radii.append(r)
         ids.append(np.full(len(c), k, dtype=np.int64))
     return np.concatenate(centres), np.concatenate(radii), np.concatenate(ids)
+
+
+def particles_in_bones(points, free, in_bone_at_rest, bones, where: str = "bones") -> tuple:
+    """``(count, deepest mm, new count, new deepest mm)`` of the ``free`` (n,) bool particles at
+    ``points`` (n, 3) mm whose centre is inside a bone of the posed multiblock ``bones`` by more
+    than :data:`INSIDE_TOLERANCE` (its cached distance field, :func:`bone_solids`), all of them
+    and those not ``in_bone_at_rest`` (n,) bool (None: not known, all count as new)."""
+    free = np.asarray(free, dtype=bool)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)[free]
+    fields, transforms = bone_solids(bones, where)
+    depth = -signed_distances(fields, points, transforms)[0].min(axis=1, initial=np.inf)
+    inside = depth > INSIDE_TOLERANCE
+    new = inside if in_bone_at_rest is None else inside & ~np.asarray(in_bone_at_rest,
+                                                                       dtype=bool)[free]
+    return tuple(v for mask in (inside, new)
+                 for v in (int(mask.sum()), float(np.where(mask, depth, 0.0).max(initial=0.0))))
 
 
 def clear_of_bones(centres, radii, bones, where: str = "bones"):

@@ -11,7 +11,11 @@ bone shape and moved with the bone, :mod:`~muscle_mss.filters.bone_sets`).
 
 Outputs: ``SolvedModel`` — every input block and array kept, points = solved positions, plus
 ``velocity`` (mm/s), ``displacement`` (solved - posed, mm) and ``collided`` (uint8, in the last
-iteration or the final collision passes); ``Convergence`` — a table with one row per
+iteration or the final collision passes), and per block (muscle) the field data
+``free_particles_in_bone`` / ``free_particle_bone_depth_mm`` (free particles with their centre
+inside a posed bone, by the bones' distance fields, and the deepest, mm) and
+``free_particles_new_in_bone`` / ``free_particle_new_in_bone_depth_mm`` (those of them not inside
+a bone at rest, ``in_bone_at_rest``: the goal is 0); ``Convergence`` — a table with one row per
 iteration: ``iteration``, ``mean_displacement_<muscle>`` per muscle (mm; the paper's figures 5
 and 6 in a line chart),
 ``colliding_pairs``, ``max_penetration`` (mm, before that iteration's response, of the pairs it
@@ -55,7 +59,7 @@ from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError
 
 from . import array_names as A
-from .bone_sets import bone_solids, bone_sphere_set
+from .bone_sets import bone_solids, bone_sphere_set, particles_in_bones
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .properties import Property
@@ -143,8 +147,9 @@ class MSSCollisionSolver(MuscleFilter):
             "a viscous drag, each muscle's resistance to a change of its volume, semi-implicit "
             "Euler, fixed tendon particles stay) while pushing the boundary "
             "particles' spheres out of other muscles' spheres and out of the bones (solids by "
-            "default, or spheres on their surface). Outputs the solved model (velocity, displacement, "
-            "collided added) and a table of the mean displacement of each muscle, the colliding "
+            "default, keeping every free particle out, or spheres on their surface). Outputs "
+            "the solved model (velocity, displacement, collided added, and per muscle the free "
+            "particles inside a bone as field data) and a table of the mean displacement of each muscle, the colliding "
             "pairs, the deepest penetration and the elapsed seconds per iteration: plot it with "
             "a Line Chart View to see the convergence.")
     INPUTS = (Port(MODEL, "vtkMultiBlockDataSet",
@@ -302,6 +307,11 @@ class MSSCollisionSolver(MuscleFilter):
             V.set_point_array(out, A.VELOCITY, result.velocity[lo:hi])
             V.set_point_array(out, A.DISPLACEMENT, result.positions[lo:hi] - part["points"])
             V.set_point_array(out, A.COLLIDED, result.collided[lo:hi].astype(np.uint8))
+            in_bone = (None if model.in_bone_at_rest is None
+                       else model.in_bone_at_rest[lo:hi])
+            for key, value in zip(A.FREE_IN_BONE_FIELDS, particles_in_bones(
+                    result.positions[lo:hi], ~model.fixed[lo:hi], in_bone, inputs[1], BONES)):
+                V.set_field(out, key, value)
             items.append((name, out))
         V.fill_multiblock(outputs[0], items)
         columns = {"iteration": np.arange(1, result.iterations + 1)}

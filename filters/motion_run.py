@@ -38,16 +38,16 @@ from .volume_error_probe import IN_BONE_COLUMNS
 SUMMARY_COLUMNS = ("time", "muscle", "rest_volume", "volume", "volume_error_pct",
                    "mean_fibre_strain", "max_fibre_strain", "sphere_overlap_mm",
                    A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
-                   A.NEW_IN_BONE_DEPTH_AFTER_MM, "free_particles_in_bone",
-                   "free_particle_bone_depth_mm", "free_particles_new_in_bone",
-                   "free_particle_new_in_bone_depth_mm", "iterations", "converged", "seconds")
+                   A.NEW_IN_BONE_DEPTH_AFTER_MM, *A.FREE_IN_BONE_FIELDS, "iterations",
+                   "converged", "seconds")
 """``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
 other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
-(``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed surface vertices
-inside a bone they were outside at rest, before and after the MVC Surface Deformer pushes them
-out; ``free_particle*``: solved particles that are not tendon attachments with their centre
-inside a bone, and the deepest (by the bones' signed distance fields), all of them and those
-whose rest position was outside that bone (``*new_in_bone*``)."""
+(``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed
+surface vertices inside a bone they were outside at rest, before and after the MVC Surface
+Deformer pushes them out; ``free_particle*``: solved particles that are not tendon attachments
+with their centre inside a bone, and the deepest (by the bones' signed distance fields), all of
+them and those not inside a bone at rest (``*new_in_bone*``), as the MSS Collision Solver
+reports them."""
 SERIES = ("surfaces", "fibres", "particles")
 RUN_FILES = ("summary.csv", "surfaces.pvd", "fibres.pvd", "particles.pvd", "convergence.png",
              "poses.png", "series", "convergence")
@@ -167,7 +167,8 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     fibres = _copy(update_at(p.deformer, 1, t))
     seconds = wallclock.perf_counter() - start
 
-    names = [n for n, _ in V.blocks(particles, "solved model")]
+    blocks = dict(V.blocks(particles, "solved model"))
+    names = list(blocks)
     centres, radii, owner, fixed = [], [], [], []
     for k, (name, block) in enumerate(V.blocks(particles, "solved model")):
         radius = V.point_array(block, A.RADIUS)
@@ -190,7 +191,6 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
                                                       "posed bones")
         penetration = max_penetration_pairs(centres, radii, owner, len(names), bone_centres,
                                             bone_radii, fixed)
-    in_bone = free_particles_in_bones(p, particles, bones)
 
     fibre_stats = {}
     for name, block in V.blocks(fibres, "deformed fibres"):
@@ -208,37 +208,14 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             "mean_fibre_strain": fibre_stats[name][0], "max_fibre_strain": fibre_stats[name][1],
             "sphere_overlap_mm": float(penetration[k]),
             **{c: _count_or_depth(c, table[c][r]) for c in IN_BONE_COLUMNS},
-            "free_particles_in_bone": in_bone[name][0],
-            "free_particle_bone_depth_mm": in_bone[name][1],
-            "free_particles_new_in_bone": in_bone[name][2],
-            "free_particle_new_in_bone_depth_mm": in_bone[name][3],
+            **{key: (int if key in (A.FREE_IN_BONE, A.FREE_NEW_IN_BONE) else float)(
+                V.field(blocks[name], key)) for key in A.FREE_IN_BONE_FIELDS},
             "iterations": iterations, "converged": converged, "seconds": seconds,
         })
     timings = {"solve": solved - start, "surface": start + seconds - solved,
                "statistics": wallclock.perf_counter() - start - seconds}
     return TimePointResult(index, t, rows, surfaces, fibres, particles, convergence, seconds,
                            timings)
-
-
-def free_particles_in_bones(p: Pipeline, particles, posed_bones) -> dict:
-    """``{muscle: (count, deepest mm, new count, new deepest mm)}`` of the solved particles
-    that are not fixed (tendon attachments belong inside their bone) with their centre inside a
-    posed bone, all and those whose rest position was outside that bone, by the bone fields the
-    MVC Surface Deformer keeps."""
-    from muscle_mss.core.bone_distance import signed_distances
-    from .mvc_surface_deformer import INSIDE_TOLERANCE, posed_bone_transforms
-    fields, rest_points = p.deformer.bone_fields(p.bones.GetOutputDataObject(0))
-    transforms = posed_bone_transforms(rest_points, posed_bones)
-    out = {}
-    for name, block in V.blocks(particles, "solved model"):
-        free = V.point_array(block, A.FIXED) == 0
-        rest = V.point_array(block, A.REST_POSITION, dtype=np.float64).reshape(-1, 3)[free]
-        depth = -signed_distances(fields, V.points_of(block)[free], transforms)[0]   # (n, b)
-        inside = depth > INSIDE_TOLERANCE
-        new = inside & (signed_distances(fields, rest)[0] >= -INSIDE_TOLERANCE)
-        out[name] = tuple(v for mask in (inside, new) for v in (
-            int(mask.any(axis=1).sum()), float(np.where(mask, depth, 0.0).max(initial=0.0))))
-    return out
 
 
 def _count_or_depth(column, value):

@@ -39,12 +39,11 @@ from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
+from .bone_sets import INSIDE_TOLERANCE
 from .properties import Property
 
 # Share of the progress bar taken by the weights when they are (re)computed.
 _WEIGHTS_PROGRESS = 0.9
-INSIDE_TOLERANCE = 1e-3
-"""mm: a surface vertex counts as inside a bone when its signed distance is below minus this."""
 
 
 @dataclass(frozen=True)

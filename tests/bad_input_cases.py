@@ -198,10 +198,11 @@ CASES = [
          r"MSS Collision Solver: the model cannot be solved with TimeStep 0.05 s: .*springs of "
          r"total stiffness 2.6e\+10 g/s\^2.*lower its Stiffness",
          cli=False, settings={"Stiffness": 1e9}),
-    Case("bone-spacing-tiny", "BoneSphereSpacing 0.001 mm (17.8 TiB asked, before)",
+    Case("bone-spacing-tiny",
+         "BoneContact sphere set, BoneSphereSpacing 0.001 mm (17.8 TiB asked, before)",
          r"bone spheres 0.001 mm apart \(\d+ candidate points, a grid of .* cells\) would need "
          r".* GiB, more than the .* GiB .*raise the MSS Collision Solver's BoneSphereSpacing",
-         cli=False, settings={"BoneSphereSpacing": 1e-3}),
+         cli=False, settings={"BoneContact": "sphere set", "BoneSphereSpacing": 1e-3}),
     # scene files (issue 16 item 2, issue 13 item 4)
     Case("muscle-vtp-missing", "`muscles/muscles_1.vtp` deleted (muscles.vtm still names it)",
          r"muscles.vtm block 'vastus_lateralis': its file .*muscles_1.vtp is missing",

@@ -157,6 +157,24 @@ def test_most_flexed_pose_ends_without_penetration_thanks_to_the_final_passes(fl
     assert V.field(table, A.PROJECTION_PASSES) == 0
 
 
+def test_solved_blocks_count_free_particles_in_bones_and_solids_leave_none_new(flexed):
+    """Issue 14: each solved block reports its free particles inside a posed bone (all, and
+    those not inside a bone at rest) and the deepest; at the most flexed pose the solid bones
+    (the default) leave no free particle newly inside one, while the sphere sets let some
+    through their shell."""
+    new = {}
+    for contact in ("solid", "sphere set"):
+        out, _ = solve(*flexed, Iterations=300, BoneContact=contact)
+        figures = np.array([[V.field(b, key) for key in A.FREE_IN_BONE_FIELDS]
+                            for _, b in V.blocks(out)])
+        count, deepest, new_count, new_deepest = figures.T
+        assert (new_count <= count).all() and ((deepest > 0) == (count > 0)).all()
+        assert ((new_deepest > 0) == (new_count > 0)).all()
+        new[contact] = (int(new_count.sum()), float(new_deepest.max()))
+    assert new["solid"] == (0, 0.0)
+    assert new["sphere set"][0] > 0 and new["sphere set"][1] > 0.1
+
+
 def test_skipping_particles_clear_of_the_solid_bones_changes_nothing(flexed, monkeypatch):
     """The solid contacts skip a particle that has moved little since it was found clear of
     every bone by a margin (core/solver.py, SOLID_LIPSCHITZ); testing every particle in every
