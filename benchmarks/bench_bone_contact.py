@@ -27,7 +27,6 @@ from dataclasses import replace
 import platform
 import tempfile
 import time
-from pathlib import Path
 
 import numba
 import numpy as np
@@ -38,12 +37,12 @@ from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_arm import demo_arm_scene
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.motion import farthest_pose_index
-from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.collision_solver import solid_bones
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
 from muscle_mss.filters.scene_io import write_scene
 
-from bench_solver import BONE_COUNTS, ITERATIONS, REPEATS, cpu_model, posed_workload
+from bench_solver import (BONE_COUNTS, ITERATIONS, REPEATS, cpu_model, posed_workload,
+                          write_result)
 
 CONTACTS = ("sphere set", "solid")
 METHODS = ("paper relaxation", "quasi-static")
@@ -189,10 +188,7 @@ def main(args):
         lines.append(f"| {region} | {t:.2f} | {method} | {contact} | {new} | {new_depth:.2f} | "
                      f"{every} | {depth:.2f} | {overlap:.3f} | {mean:.2f} / {worst:.2f} | "
                      f"{seconds:.1f} | {load:.2f} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    out = Path(__file__).resolve().parent / "results" / "bone_contact.md"
-    out.write_text(text)
+    write_result(lines, "bone_contact.md")
 
 
 if __name__ == "__main__":

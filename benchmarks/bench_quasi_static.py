@@ -20,7 +20,6 @@ import os
 import platform
 import tempfile
 import time
-from pathlib import Path
 
 import numba
 import numpy as np
@@ -34,7 +33,7 @@ from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_bloc
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
-from bench_solver import cpu_model
+from bench_solver import cpu_model, write_result
 
 POSES = (("walking", 0.35), ("most flexed", 0.75))
 
@@ -149,10 +148,7 @@ def main(args):
         if len(walk_rows) == 2:
             lines.append("")
             lines.append(f"Warm / cold seconds: {walk_rows[1][2] / walk_rows[0][2]:.2f}.")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    out = Path(__file__).resolve().parent / "results" / "quasi_static.md"
-    out.write_text(text)
+    write_result(lines, "quasi_static.md")
 
 
 if __name__ == "__main__":

@@ -49,6 +49,13 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def write_result(lines, name) -> None:
+    """Print the table ``lines`` and write it to ``benchmarks/results/<name>``."""
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (Path(__file__).resolve().parent / "results" / name).write_text(text)
+
+
 def posed_workload(scene_folder, time_point, n):
     """The solver's inputs at ``time_point`` from the real pipeline (motion_run's wiring: the
     Spring Builder clears radii of the bones), with the paper's bone sphere counts."""
@@ -114,10 +121,7 @@ def main(sizes):
         lines.append(f"| {n} | {per} | {bnd} | {st} | {a:.2f} | {b:.2f} | {c:.2f} | "
                      f"{passes} ({proj:.2f}) | {tot:.2f} | {spread} | {PAPER[n][3]:.2f} | "
                      f"{speed:.0f}x | {load:.2f} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    out = Path(__file__).resolve().parent / "results" / "solver.md"
-    out.write_text(text)
+    write_result(lines, "solver.md")
 
 
 if __name__ == "__main__":

@@ -286,18 +286,26 @@ def test_filter_refuses_a_negative_tolerance(walk):
 
 # ---- bones as solids ---------------------------------------------------------------------------
 
+def chain_in_a_box(face):
+    """The chain of chain_on_a_ball and a box bone reaching from below its strands to its +x
+    face at ``face`` mm, spanning the chain's width and its middle (z 4.5 to 10.5 mm), as a
+    solid with a 0.5 mm clearance: ``(model, box mesh, BoneSolids, inside at the start)``."""
+    from muscle_mss.core.bone_distance import bone_field_set, reference_signed_distance
+    from test_bone_distance import box_mesh
+    model, _ = chain_on_a_ball()
+    box = box_mesh([-10.0, -10.0, 4.5], [face, 12.0, 10.5])
+    solids = BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([0.5]))
+    return model, box, solids, reference_signed_distance(*box, model.positions) < 0
+
+
 def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
     """The chain of chain_on_a_ball, its middle posed 1 and 3 mm deep inside a box bone from the
     box's +x face (the box spans the chain's width and more): every free sphere ends its radius
     plus the clearance outside, on the +x side, where the bone's sphere shell would let the
     deeper strand be pulled through."""
-    from muscle_mss.core.bone_distance import bone_field_set, reference_signed_distance
-    from test_bone_distance import box_mesh
-    model, _ = chain_on_a_ball()
-    box = box_mesh([-10.0, -10.0, 4.5], [3.0, 12.0, 10.5])
-    clearance = 0.5
-    solids = BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance]))
-    inside = reference_signed_distance(*box, model.positions) < 0
+    from muscle_mss.core.bone_distance import reference_signed_distance
+    model, box, solids, inside = chain_in_a_box(3.0)
+    clearance = solids.clearance[0]
     assert inside.sum() == 8 and not (inside & model.fixed).any()
     result = Q.solve(model, settings=Q.QuasiStaticSettings(tolerance=1e-4, iterations=3000),
                      bone_solids=solids)
@@ -316,14 +324,9 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
     mm from the z faces): after the relaxation every free sphere is its radius plus the
     clearance outside the box (within the final passes' PenetrationTolerance), the strand
     that was inside on the +x side."""
-    from muscle_mss.core.bone_distance import (bone_field_set, reference_signed_distance,
-                                               signed_distances)
-    from test_bone_distance import box_mesh
-    model, _ = chain_on_a_ball()
-    box = box_mesh([-10.0, -10.0, 4.5], [1.0, 12.0, 10.5])
-    clearance = 0.5
-    solids = BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance]))
-    inside = reference_signed_distance(*box, model.positions) < 0
+    from muscle_mss.core.bone_distance import reference_signed_distance, signed_distances
+    model, box, solids, inside = chain_in_a_box(1.0)
+    clearance = solids.clearance[0]
     assert inside.sum() == 4 and not (inside & model.fixed).any()
     result = S.solve(model, settings=S.SolverSettings(iterations=300), bone_solids=solids)
     slack = S.DEFAULT_PENETRATION_TOLERANCE
