@@ -9,7 +9,9 @@ index pairs ``(i, j)`` with ``i < j``, sorted, every spring once and none from a
   ``fibre_index`` along the fibre: 6 = the axis neighbours (the cube sides), 26 = the whole
   3x3x3 neighbourhood (sides, face and space diagonals). Needs a full rectangular grid with the
   same number of particles on every fibre.
-* :func:`delaunay_springs` — the edges of ``scipy.spatial.Delaunay`` of the particles.
+* :func:`delaunay_springs` — the edges of ``scipy.spatial.Delaunay`` of the particles; given the
+  muscle's surface, only those of the tetrahedra inside the muscle and no longer than
+  :data:`DELAUNAY_REACH` fibre steps (the Spring Builder's Delaunay).
 * :func:`knn_springs` — each particle to its ``k`` nearest particles (the paper's suggested
   layout with ``k = 15``), made symmetric.
 
@@ -21,6 +23,7 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from .errors import MuscleMSSError
+from .volume import winding_numbers
 
 LATTICE_NEIGHBOURHOODS = (6, 26)
 
@@ -168,12 +171,45 @@ def lattice_springs(grid, fibre_id, fibre_index, neighbourhood: int = 26,
     return unique_springs(np.concatenate(ends_a), np.concatenate(ends_b))
 
 
-def delaunay_springs(points, where: str = "particles") -> np.ndarray:
+# A restricted Delaunay tetrahedron's longest edge may be this many times the longest step
+# between consecutive particles of one of the muscle's fibres: a lattice-26 cell's space
+# diagonal is at most sqrt(3) steps, and the tetrahedra of the particle cloud's hull that span
+# the muscle's length or its curve (100-480 mm on the demo thigh at N = 20, steps 17-62 mm)
+# are many times longer.
+DELAUNAY_REACH = 1.5
+# a particle left in no restricted tetrahedron keeps this many of its shortest Delaunay edges
+DELAUNAY_FALLBACK_EDGES = 4
+
+
+def fibre_step(points, fibre_id, fibre_index) -> float:
+    """The longest distance (mm) between consecutive particles (by ``fibre_index``) of one
+    fibre (``fibre_id``), over all fibres of a muscle; 0 when no fibre has two particles."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    order = np.lexsort((np.asarray(fibre_index).ravel(), np.asarray(fibre_id).ravel()))
+    ids = np.asarray(fibre_id).ravel()[order]
+    same = ids[1:] == ids[:-1]
+    if not same.any():
+        return 0.0
+    steps = np.linalg.norm(points[order][1:] - points[order][:-1], axis=1)
+    return float(steps[same].max())
+
+
+def delaunay_springs(points, where: str = "particles", surface=None,
+                     longest_edge: float = np.inf) -> np.ndarray:
     """Springs on the edges of the Delaunay tetrahedralisation of the particles: (s, 2) int64.
 
     points (P, 3) float64 mm. A particle that Qhull leaves out of the tetrahedralisation
     (one coinciding with another, e.g. fibre ends meeting at a tendon) is joined to the four
     corners of the tetrahedron it lies in, so that no particle is left without springs.
+
+    Restricted to the muscle when ``surface`` = (points (V, 3), triangles (T, 3)) of its closed,
+    outward rest surface is given: only the tetrahedra whose centroid lies inside it (winding
+    number > 1/2) and whose longest edge is at most ``longest_edge`` mm give springs. The plain
+    tetrahedralisation fills the particles' convex hull: on a long or curved muscle its hull
+    tetrahedra join particles across the muscle's bend and along its whole length (springs of
+    up to the muscle's length), which resist any bending and crumple the muscle at a flexed
+    pose. A particle left in no kept tetrahedron keeps its :data:`DELAUNAY_FALLBACK_EDGES`
+    shortest Delaunay edges.
 
     Raises
     ------
@@ -189,12 +225,32 @@ def delaunay_springs(points, where: str = "particles") -> np.ndarray:
             f"{where}: the Delaunay layout needs particles spanning 3D space (at least 5, not "
             f"all in one plane); Qhull refused the {len(points)} particles ({reason}); "
             "use k-NN or a lattice layout") from None
-    indptr, indices = tri.vertex_neighbor_vertices
-    owner = np.repeat(np.arange(len(points)), np.diff(indptr))
     left_out = np.asarray(tri.coplanar, dtype=np.int64).reshape(-1, 3)
     extra_a = np.repeat(left_out[:, 0], 4)
     extra_b = tri.simplices[left_out[:, 1]].ravel()
-    return unique_springs(np.concatenate([owner, extra_a]), np.concatenate([indices, extra_b]))
+    indptr, indices = tri.vertex_neighbor_vertices
+    owner = np.repeat(np.arange(len(points)), np.diff(indptr))
+    if surface is None:
+        return unique_springs(np.concatenate([owner, extra_a]), np.concatenate([indices, extra_b]))
+    simplices = tri.simplices
+    pairs = [(a, b) for a in range(4) for b in range(a + 1, 4)]
+    edges = np.stack([np.linalg.norm(points[simplices[:, a]] - points[simplices[:, b]], axis=1)
+                      for a, b in pairs], axis=1)
+    inside = winding_numbers(points[simplices].mean(axis=1), *surface) > 0.5
+    kept = simplices[inside & (edges.max(axis=1) <= longest_edge)]
+    ends_a = [kept[:, a] for a, _ in pairs] + [extra_a]
+    ends_b = [kept[:, b] for _, b in pairs] + [extra_b]
+    covered = np.zeros(len(points), dtype=bool)
+    covered[kept.ravel()] = True
+    covered[left_out[:, 0]] = True
+    lone = ~covered[owner]
+    owner, neighbour = owner[lone], indices[lone]
+    order = np.lexsort((np.linalg.norm(points[neighbour] - points[owner], axis=1), owner))
+    owner, neighbour = owner[order], neighbour[order]
+    rank = np.arange(len(owner)) - np.searchsorted(owner, owner)     # 0 = shortest edge
+    ends_a.append(owner[rank < DELAUNAY_FALLBACK_EDGES])
+    ends_b.append(neighbour[rank < DELAUNAY_FALLBACK_EDGES])
+    return unique_springs(np.concatenate(ends_a), np.concatenate(ends_b))
 
 
 def knn_springs(points, k: int, workers: int = 1) -> np.ndarray:

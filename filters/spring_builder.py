@@ -35,8 +35,8 @@ from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, shrink_radii,
                                    sphere_radii)
 from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE, FibreSet, Scene, Surface
-from muscle_mss.core.springs import (delaunay_springs, knn_springs, lattice_springs,
-                                     rest_lengths)
+from muscle_mss.core.springs import (DELAUNAY_REACH, delaunay_springs, fibre_step,
+                                     knn_springs, lattice_springs, rest_lengths)
 from muscle_mss.core.validation import placement_problems
 
 from . import array_names as A
@@ -64,8 +64,9 @@ def _field_names(dataset) -> list:
             if fd.GetAbstractArray(i).GetName()]
 
 
-def surface_vertices(surfaces: dict, name: str) -> np.ndarray:
-    """(V, 3) float64 mm: the vertices of muscle ``name``'s rest surface used by its triangles."""
+def surface_mesh(surfaces: dict, name: str):
+    """``(points (V, 3) float64 mm, triangles (T, 3) int64)`` of muscle ``name``'s rest
+    surface, checked: triangles that refer to existing, finite points."""
     where = f"{MUSCLES_FILE} block '{name}'"
     surface = surfaces.get(name)
     if surface is None:
@@ -79,11 +80,10 @@ def surface_vertices(surfaces: dict, name: str) -> np.ndarray:
     points = V.points_of(surface)
     if triangles.max() >= len(points):
         raise MuscleMSSError(f"{where} has triangles referring to missing points")
-    vertices = points[np.unique(triangles)]
-    if not np.isfinite(vertices).all():
+    if not np.isfinite(points[np.unique(triangles)]).all():
         raise MuscleMSSError(f"{where} has a NaN or infinite coordinate; every coordinate "
                              "must be finite")
-    return vertices
+    return points, triangles
 
 
 def _checked_surface(block, where):
@@ -165,7 +165,11 @@ class SpringBuilder(MuscleFilter):
                  "lattice (fibre_grid row, col and place along the fibre) with springs on the "
                  "cube sides; lattice-26: sides, face and space diagonals (the paper's fastest "
                  "converging layout); both need a full rectangular fibre_grid. Delaunay: the edges "
-                 "of the Delaunay tetrahedralisation of each muscle's particles. k-NN: each "
+                 "of the Delaunay tetrahedralisation of each muscle's particles, restricted to the "
+                 "muscle: its tetrahedra inside the rest surface with no edge longer than "
+                 f"{DELAUNAY_REACH:g} times the longest step between consecutive particles of a "
+                 "fibre (the whole tetrahedralisation fills the particles' convex hull and joins "
+                 "a curved muscle across its bend). k-NN: each "
                  "particle to its NeighbourCount nearest particles.",
                  choices=LAYOUTS, group="Springs"),
         Property("NeighbourCount", "int", 15,
@@ -204,7 +208,7 @@ class SpringBuilder(MuscleFilter):
         check_placement(blocks, surfaces, inputs[2])
         models = []
         for done, (name, block) in enumerate(blocks):
-            models.append(self._muscle_model(name, block, surface_vertices(surfaces, name),
+            models.append(self._muscle_model(name, block, surface_mesh(surfaces, name),
                                              layout))
             if self.progress(0.9 * (done + 1) / len(blocks)):
                 raise MuscleMSSError(f"stopped by the user after {done + 1} of {len(blocks)} "
@@ -225,8 +229,10 @@ class SpringBuilder(MuscleFilter):
         self.progress(1.0)
         V.fill_multiblock(outputs[0], items)
 
-    def _muscle_model(self, name, block, vertices, layout) -> dict:
-        """Rest positions, springs, boundary and unshrunk radii of one muscle."""
+    def _muscle_model(self, name, block, surface, layout) -> dict:
+        """Rest positions, springs, boundary and unshrunk radii of one muscle (``surface``:
+        its rest surface's points and triangles)."""
+        vertices = surface[0][np.unique(surface[1])]
         where = f"{PARTICLES} block '{name}'"
         V.require_polydata(block, where, "a particle block")
         if block.GetNumberOfPoints() == 0:
@@ -241,7 +247,7 @@ class SpringBuilder(MuscleFilter):
             bad = int(np.flatnonzero(~np.isfinite(rest).all(axis=1))[0])
             raise MuscleMSSError(f"{where}: particle {bad} has a NaN or infinite rest position")
         grid = V.point_array(block, A.FIBRE_GRID, where, required=False, dtype=np.int64)
-        if grid is not None:
+        if grid is not None or layout == "Delaunay":
             fibre_id = V.point_array(block, A.FIBRE_ID, where, dtype=np.int64)
             fibre_index = V.point_array(block, A.FIBRE_INDEX, where, dtype=np.int64)
         if layout in LATTICE_NEIGHBOURHOOD:
@@ -253,7 +259,8 @@ class SpringBuilder(MuscleFilter):
             springs = lattice_springs(grid, fibre_id, fibre_index,
                                       LATTICE_NEIGHBOURHOOD[layout], where)
         elif layout == "Delaunay":
-            springs = delaunay_springs(rest, where)
+            springs = delaunay_springs(rest, where, surface, DELAUNAY_REACH * fibre_step(
+                rest, fibre_id, fibre_index))
         else:
             springs = knn_springs(rest, self.value("NeighbourCount"))
         if grid is not None:

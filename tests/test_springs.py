@@ -3,11 +3,16 @@ import itertools
 
 import numpy as np
 import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.springs import (delaunay_springs, knn_springs, lattice_offsets,
-                                     lattice_springs, rest_lengths, unique_springs)
+from muscle_mss.core.demo_geometry import tube_triangles
+from muscle_mss.core.springs import (DELAUNAY_FALLBACK_EDGES, DELAUNAY_REACH, delaunay_springs,
+                                     fibre_step, knn_springs, lattice_offsets, lattice_springs,
+                                     rest_lengths, unique_springs)
+from muscle_mss.core.volume import signed_volume
 
 
 def lattice(rows=8, cols=8, n=20, spacing=(3.0, 2.5, 1.7), shuffle_seed=None):
@@ -142,6 +147,53 @@ def test_delaunay_of_flat_particles_is_refused_with_a_clear_error():
     flat = np.column_stack([random_muscle(50)[:, :2], np.zeros(50)])
     with pytest.raises(MuscleMSSError, match="block 'flat'.*3D space"):
         delaunay_springs(flat, where="block 'flat'")
+
+
+def c_shaped_muscle(radius=40.0, thickness=6.0, sweep=1.5 * np.pi, steps=25):
+    """A tube bent into a C (``sweep`` of a circle of ``radius`` mm): its particles, 3 x 3
+    fibres of ``steps`` particles along the arc, each particle's place along its fibre, and
+    the tube's closed, outward surface (points, triangles)."""
+    theta = np.linspace(-sweep / 2, sweep / 2, steps)
+    offsets = [(dr, dz) for dr in (-4.0, 0.0, 4.0) for dz in (-4.0, 0.0, 4.0)]
+    points = np.array([[(radius + dr) * np.cos(t), (radius + dr) * np.sin(t), dz]
+                       for dr, dz in offsets for t in theta])
+    along = np.tile(np.arange(steps), len(offsets))
+    fibre = np.repeat(np.arange(len(offsets)), steps)
+    rings = np.linspace(-sweep / 2 - 0.1, sweep / 2 + 0.1, steps + 4)
+    phi = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    ring_points = [[(radius + thickness * np.cos(f)) * np.cos(t),
+                    (radius + thickness * np.cos(f)) * np.sin(t), thickness * np.sin(f)]
+                   for t in rings for f in phi]
+    end = sweep / 2 + 0.2
+    surface = np.array([[radius * np.cos(-end), radius * np.sin(-end), 0.0], *ring_points,
+                        [radius * np.cos(end), radius * np.sin(end), 0.0]])
+    triangles = tube_triangles(len(rings), len(phi))
+    if signed_volume(surface, triangles) < 0:
+        triangles = np.ascontiguousarray(triangles[:, ::-1])
+    return points, along, fibre, (surface, triangles)
+
+
+def test_restricted_delaunay_keeps_a_curved_muscle_from_being_joined_across_its_bend():
+    points, along, fibre, surface = c_shaped_muscle()
+    whole = delaunay_springs(points)
+    # the plain tetrahedralisation fills the C's convex hull: springs across the bend
+    assert np.abs(np.diff(along[whole], axis=1)).max() > 10
+    step = fibre_step(points, fibre, along)
+    assert step == pytest.approx(2 * 44.0 * np.sin(1.5 * np.pi / 48))    # the outer fibres
+    springs = delaunay_springs(points, surface=surface, longest_edge=DELAUNAY_REACH * step)
+    assert_clean(springs, len(points))
+    assert len(np.setdiff1d(springs[:, 0] * len(points) + springs[:, 1],
+                            whole[:, 0] * len(points) + whole[:, 1])) == 0   # a subset
+    assert np.abs(np.diff(along[springs], axis=1)).max() <= 2
+    assert rest_lengths(points, springs).max() <= DELAUNAY_REACH * step
+    assert degrees(springs, len(points)).min() >= DELAUNAY_FALLBACK_EDGES
+    graph = coo_matrix((np.ones(len(springs)), (springs[:, 0], springs[:, 1])),
+                       shape=(len(points), len(points)))
+    assert connected_components(graph, directed=False)[0] == 1
+    # a particle outside the surface, in no kept tetrahedron, keeps its shortest Delaunay edges
+    outside = np.vstack([points, [[40.0, 0.0, 20.0]]])
+    lone = delaunay_springs(outside, surface=surface, longest_edge=DELAUNAY_REACH * step)
+    assert degrees(lone, len(outside))[-1] == DELAUNAY_FALLBACK_EDGES
 
 
 def brute_knn(points, k):
