@@ -41,10 +41,13 @@ CACHE_ENTRIES = 64          # bone shapes kept (least recently used dropped)
 #: samplings), ``reused`` (same points, spheres returned as cached), ``moved`` (rigid copy).
 cache_counts = {"sampled": 0, "reused": 0, "moved": 0}
 _cache = OrderedDict()      # key -> list of (points (n, 3), (centres (k, 3), radii (k,)))
-#: The same for the bones' distance fields (:func:`cached_bone_field`).
-field_counts = {"sampled": 0, "reused": 0, "moved": 0}
+#: The same for the bones' distance fields (:func:`cached_bone_field`), and ``remembered``:
+#: bones that :func:`bone_solids` returned from its memory of the same, unmodified blocks.
+field_counts = {"sampled": 0, "reused": 0, "moved": 0, "remembered": 0}
 _field_cache = OrderedDict()    # key -> list of (points (n, 3), BoneDistanceField)
 _packed = {}                    # the last packed BoneFieldSet and the fields it holds
+_solids = OrderedDict()         # the blocks' VTK identities -> bone_solids' result
+SOLIDS_ENTRIES = 4              # bone multiblocks remembered by bone_solids
 
 
 def clear_bone_cache():
@@ -52,6 +55,7 @@ def clear_bone_cache():
     _cache.clear()
     _field_cache.clear()
     _packed.clear()
+    _solids.clear()
     for counts in (cache_counts, field_counts):
         for name in counts:
             counts[name] = 0
@@ -149,9 +153,21 @@ def cached_bone_field(points, triangles, where: str = "bone"):
 def bone_solids(bones, where: str = "bones"):
     """Every bone of a multiblock as a solid: ``(BoneFieldSet, transforms (b, 3, 4))``, bone b
     being its block's index, each field sampled once per bone shape (:func:`cached_bone_field`)
-    and placed by its transform."""
+    and placed by its transform.
+
+    The same blocks, unmodified since (VTK object and modification time), give the result of
+    the last call without hashing and fitting the bones again: within one time point the solver,
+    its per-muscle reports and the runner's statistics all ask for the same posed bones (45
+    cache lookups of 3-5 ms each per demo time point)."""
+    blocks = V.polydata_blocks(bones, where, "a triangle surface")
+    identity = tuple((name, block.__this__, block.GetMTime()) for name, block in blocks)
+    if identity in _solids:
+        _solids.move_to_end(identity)
+        field_counts["remembered"] += len(blocks)
+        packed, transforms = _solids[identity]
+        return packed, transforms.copy()
     fields, transforms, names = [], [], []
-    for name, block in V.polydata_blocks(bones, where, "a triangle surface"):
+    for name, block in blocks:
         block_where = f"{where} block '{name}'"
         field, transform = cached_bone_field(V.points_of(block),
                                              V.triangles_of(block, block_where), block_where)
@@ -162,7 +178,11 @@ def bone_solids(bones, where: str = "bones"):
     if _packed.get("key") != key:
         _packed.clear()
         _packed.update(key=key, fields=BoneFieldSet.pack(fields, names))
-    return _packed["fields"], np.array(transforms).reshape(-1, 3, 4)
+    transforms = np.array(transforms).reshape(-1, 3, 4)
+    _solids[identity] = (_packed["fields"], transforms.copy())
+    while len(_solids) > SOLIDS_ENTRIES:
+        _solids.popitem(last=False)
+    return _packed["fields"], transforms
 
 
 def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
