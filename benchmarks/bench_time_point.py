@@ -98,21 +98,21 @@ def replaced_parts(pipeline, index, result, out) -> list:
     captured = {}
     kernel = P.max_penetration_pairs
 
-    def capture(*args):
-        captured["args"] = args
-        return kernel(*args)
+    def capture(*args, **kwargs):
+        captured["args"] = args, kwargs
+        return kernel(*args, **kwargs)
 
     P.max_penetration_pairs = capture
     try:
         motion_run.solve_time_point(pipeline, index)
     finally:
         P.max_penetration_pairs = kernel
-    args = captured["args"]
+    args, kwargs = captured["args"]
     start = time.perf_counter()
-    P.max_penetration_per_object(*args)
+    P.max_penetration_per_object(*args, **kwargs)
     old = time.perf_counter() - start
     start = time.perf_counter()
-    kernel(*args)
+    kernel(*args, **kwargs)
     rows.append(("penetration statistics (Python reference / Numba sweep)", old,
                  time.perf_counter() - start))
     start = time.perf_counter()

@@ -39,7 +39,7 @@ from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
-from .bone_sets import INSIDE_TOLERANCE
+from .bone_sets import INSIDE_TOLERANCE, cached_bone_field
 from .properties import Property
 
 # Share of the progress bar taken by the weights when they are (re)computed.
@@ -140,33 +140,45 @@ class MVCSurfaceDeformer(MuscleFilter):
 
     # ---- the cached bone side ------------------------------------------------------------------
     def bone_fields(self, rest_bones):
-        """``(BoneFieldSet, {bone name: rest vertices (n, 3) mm})`` of the rest bones, built
-        only when they (or BoneFieldSpacing) changed since the last call."""
+        """``(BoneFieldSet, {bone name: rest vertices (n, 3) mm}, frames (b, 3, 4))`` of the rest
+        bones, built only when they (or BoneFieldSpacing) changed since the last call; a frame
+        takes its field's points to the rest bone. At the default spacing the fields come from
+        the rigid-bone cache (:func:`~muscle_mss.filters.bone_sets.cached_bone_field`) that
+        the Rigid Pose Transform and the MSS Collision Solver sample them into, so a pipeline
+        samples each bone once (6-8 s for the demo thigh's three bones), not twice."""
         key = (_modification_key(rest_bones, "RestBones"), self.value("BoneFieldSpacing"))
         if key != self._bone_key:
             items = V.polydata_blocks(rest_bones, "RestBones", "a bone's triangle surface")
             if not items:
                 raise MuscleMSSError("RestBones: has no blocks; connect bones.vtm")
-            fields, rest_points = [], {}
+            spacing = self.value("BoneFieldSpacing")
+            fields, rest_points, frames = [], {}, []
             for i, (name, block) in enumerate(items):
                 where = f"RestBones block '{name}'"
                 rest_points[name] = V.points_of(block)
-                fields.append(bone_distance_field(rest_points[name], V.triangles_of(block, where),
-                                                  spacing=self.value("BoneFieldSpacing"),
-                                                  where=where))
+                triangles = V.triangles_of(block, where)
+                if spacing == DEFAULT_SPACING:
+                    field, frame = cached_bone_field(rest_points[name], triangles, where)
+                else:
+                    field = bone_distance_field(rest_points[name], triangles, spacing=spacing,
+                                                where=where)
+                    frame = np.eye(3, 4)
+                fields.append(field)
+                frames.append(frame)
                 if self.progress((i + 1) / len(items)):
                     raise MuscleMSSError("aborted while sampling the bones' distance fields")
-            self._bones = (BoneFieldSet.pack(fields, list(rest_points)), rest_points)
+            self._bones = (BoneFieldSet.pack(fields, list(rest_points)), rest_points,
+                           np.array(frames).reshape(-1, 3, 4))
             self._bone_key = key
             self.field_computations += 1
         return self._bones
 
-    def _outside_at_rest(self, bindings, fields):
+    def _outside_at_rest(self, bindings, fields, frames):
         """``{muscle: (v, b) bool}``: which rest surface vertices are outside which bone."""
         key = (self._rest_key, self._bone_key)
         if key != self._outside_key:
-            self._outside = {name: signed_distances(fields, b.rest_points)[0] >= -INSIDE_TOLERANCE
-                             for name, b in bindings.items()}
+            self._outside = {name: signed_distances(fields, b.rest_points, frames)[0]
+                             >= -INSIDE_TOLERANCE for name, b in bindings.items()}
             self._outside_key = key
         return self._outside
 
@@ -210,9 +222,10 @@ class MVCSurfaceDeformer(MuscleFilter):
             raise MuscleMSSError("connect both RestBones (bones.vtm) and PosedBones (the Rigid "
                                  "Pose Transform's PosedBones), or neither")
         if rest_bones is not None:
-            fields, rest_points = self.bone_fields(rest_bones)
-            bones = (fields, posed_bone_transforms(rest_points, posed_bones),
-                     self._outside_at_rest(bindings, fields), self.value("KeepOutOfBones"))
+            fields, rest_points, frames = self.bone_fields(rest_bones)
+            bones = (fields, _after(posed_bone_transforms(rest_points, posed_bones), frames),
+                     self._outside_at_rest(bindings, fields, frames),
+                     self.value("KeepOutOfBones"))
         blocks = V.blocks(solved, where="SolvedModel")
         names = [n for n, _ in blocks]
         for name in bindings:
@@ -286,6 +299,13 @@ def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
         transforms.append(fitted_rigid_transform(points, V.points_of(posed[name]),
                                                  where=f"PosedBones block '{name}'"))
     return np.array(transforms).reshape(-1, 3, 4)
+
+
+def _after(outer, inner) -> np.ndarray:
+    """(b, 3, 4) transforms: each of ``inner`` (b, 3, 4) followed by the same bone's ``outer``."""
+    rotation = outer[:, :, :3] @ inner[:, :, :3]
+    shift = np.einsum("bij,bj->bi", outer[:, :, :3], inner[:, :, 3]) + outer[:, :, 3]
+    return np.concatenate([rotation, shift[:, :, None]], axis=2)
 
 
 def new_in_bones(fields, transforms, points, outside):

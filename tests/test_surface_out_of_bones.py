@@ -95,6 +95,31 @@ def test_keep_out_of_bones_off_only_counts_and_fields_are_built_once():
     assert f.field_computations == 1
 
 
+def test_fields_come_from_the_shared_bone_cache_whatever_frame_it_sampled_them_in():
+    """At the default BoneFieldSpacing the deformer takes the fields the pose filter and the
+    solver sample (one sampling per bone shape), also when the cache sampled a moved copy of
+    the bone first: the deformer then composes that frame with the pose."""
+    from muscle_mss.filters import bone_sets
+    model, surfaces = scene()
+    _, bones = box_bone(surfaces)
+    transform = rigid(30.0, [1, 1, 0], [10.0, -4.0, 7.0])
+    solved = moved(model, lambda p: (p - [0, DROP, 0]) @ transform[:, :3].T + transform[:, 3])
+    outputs = []
+    for first_seen in (bones, posed(bones, rigid(70.0, [0, 1, 1], [40.0, 5.0, -9.0]))):
+        bone_sets.clear_bone_cache()
+        block = first_seen.GetBlock(0)
+        bone_sets.cached_bone_field(V.points_of(block), V.triangles_of(block))
+        f = run(solved, surfaces, model, bones, posed(bones, transform))
+        assert bone_sets.field_counts["sampled"] == 1            # the deformer sampled none
+        outputs.append(dict(V.blocks(f.GetOutputDataObject(0)))["vastus"])
+    bone_sets.clear_bone_cache()
+    at_rest, moved_frame = outputs
+    assert V.field(at_rest, A.NEW_IN_BONE_VERTICES) > 10
+    for name in (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_VERTICES_AFTER):
+        assert V.field(moved_frame, name) == V.field(at_rest, name)
+    np.testing.assert_allclose(V.points_of(moved_frame), V.points_of(at_rest), atol=2e-3)
+
+
 def test_without_bones_nothing_is_reported_and_one_bone_input_alone_is_refused():
     model, surfaces = scene()
     _, bones = box_bone(surfaces)
