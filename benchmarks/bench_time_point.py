@@ -10,7 +10,7 @@ LZ4, and the convergence table). The first time point (MVC weights, kernel loads
 sampling) is listed apart from the steady state (mean of the later ones). A second table times
 the two parts issue 15 replaced, on the last time point's data: bone spheres sampled afresh vs
 taken from the rigid-bone cache, and the penetration statistics' Python reference vs its Numba
-sweep; and the writing with VTK's default ZLib compressor vs LZ4. Writes
+grid; and the writing with VTK's default ZLib compressor vs LZ4. Writes
 benchmarks/results/time_point.md.
 
     python benchmarks/bench_time_point.py [N ...] [--points K]    (default: 20 80, K = 4)
@@ -113,7 +113,7 @@ def replaced_parts(pipeline, index, result, out) -> list:
     old = time.perf_counter() - start
     start = time.perf_counter()
     kernel(*args, **kwargs)
-    rows.append(("penetration statistics (Python reference / Numba sweep)", old,
+    rows.append(("penetration statistics (Python reference / Numba grid)", old,
                  time.perf_counter() - start))
     start = time.perf_counter()
     motion_run.write_time_point(result, os.path.join(out, "zlib"), compressor="zlib")

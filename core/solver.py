@@ -197,6 +197,7 @@ class PreparedModel:
     boundary: np.ndarray
     in_bone_at_rest: np.ndarray | None = None   # (n,) bool, solver order, or None: not known
     cache: dict = field(default_factory=dict)   # other methods' topology data (factorisations)
+    stable_step: tuple | None = None            # stable_time_step(model) (springs, masses)
 
 
 def prepare(model: MSSModel) -> PreparedModel:
@@ -220,7 +221,8 @@ def prepare(model: MSSModel) -> PreparedModel:
                 else np.asarray(model.in_bone_at_rest, dtype=bool)[order])
     return PreparedModel(order, offsets, layout, _cages(model, rank), inv_mass,
                          np.asarray(model.radius, dtype=np.float64)[order], muscle, fixed,
-                         np.asarray(model.boundary, dtype=bool)[order], in_bone)
+                         np.asarray(model.boundary, dtype=bool)[order], in_bone,
+                         stable_step=stable_time_step(model))
 
 
 def _cages(model: MSSModel, rank) -> VolumeCages:
@@ -722,11 +724,12 @@ def stable_time_step(model: MSSModel):
     return best
 
 
-def stability_problem(model: MSSModel, time_step: float) -> str | None:
+def stability_problem(model: MSSModel, time_step: float, stable_step=None) -> str | None:
     """Why ``time_step`` cannot give a meaningful solve of ``model`` (the explicit integration
     grows without bound: particles jump ~1e8 mm in the first iteration), or None. Refused
-    above :data:`STABILITY_MARGIN` times :func:`stable_time_step`."""
-    dt, m, p, kind = stable_time_step(model)
+    above :data:`STABILITY_MARGIN` times :func:`stable_time_step` (``stable_step``: its result
+    for this model when known, e.g. :attr:`PreparedModel.stable_step`)."""
+    dt, m, p, kind = stable_step if stable_step is not None else stable_time_step(model)
     if not time_step > STABILITY_MARGIN * dt:
         return None
     lo = int(model.offsets[m])
@@ -805,11 +808,11 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     _check_settings(settings)
     if bone_solids is not None:
         bone_solids.check()
-    problem = stability_problem(model, settings.time_step)
+    prep = prepared if prepared is not None else prepare(model)
+    problem = stability_problem(model, settings.time_step, prep.stable_step)
     if problem:
         raise MuscleMSSError(problem)
     check_history_size(settings.iterations, len(model.names))
-    prep = prepared if prepared is not None else prepare(model)
     offsets = prep.offsets
     n = int(offsets[-1])
     n_muscles = len(offsets) - 1

@@ -325,7 +325,9 @@ def _keep_out_of_bones(deformed, fields, transforms, outside, push):
     if push and count:
         deformed = deformed + push_out_of_bones(fields, deformed, None, transforms,
                                                 active=outside, tolerance=INSIDE_TOLERANCE)
-        after = new_in_bones(fields, transforms, deformed, outside)[:2]
+        # only the vertices that were inside moved; the others stay outside
+        pushed = depth > 0.0
+        after = new_in_bones(fields, transforms, deformed[pushed], outside[pushed])[:2]
     return deformed, {A.NEW_IN_BONE_DEPTH: depth, A.NEW_IN_BONE_VERTICES: count,
                       A.NEW_IN_BONE_DEPTH_MM: deepest, A.NEW_IN_BONE_VERTICES_AFTER: after[0],
                       A.NEW_IN_BONE_DEPTH_AFTER_MM: after[1]}

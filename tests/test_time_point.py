@@ -138,7 +138,7 @@ def test_rigid_fit_recovers_a_known_motion():
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_penetration_sweep_equals_the_reference_bitwise(seed):
+def test_penetration_grid_equals_the_reference_bitwise(seed):
     rng = np.random.default_rng(seed)
     n, k = 400, 120
     centres = rng.uniform(0, 30, (n, 3))
@@ -152,6 +152,17 @@ def test_penetration_sweep_equals_the_reference_bitwise(seed):
         np.testing.assert_array_equal(got, want)
         assert want[:5].min() > 0 and want[5] == 0  # object 5 has no spheres
     np.testing.assert_array_equal(max_penetration_pairs(np.zeros((0, 3)), [], [], 2), [0, 0])
+    # spheres on the grid's cell boundaries (cell = twice the largest radius = 1 mm), a
+    # long thin cloud, and radii all 0 (no overlap: a tiny cell)
+    lattice = np.stack(np.meshgrid(*[np.arange(4.0)] * 3), axis=-1).reshape(-1, 3)
+    lattice = np.vstack([lattice, lattice + rng.normal(0, 0.3, lattice.shape)])
+    long_cloud = rng.uniform(0, 1, (300, 3)) * [5.0, 5.0, 600.0]
+    for points, size in ((lattice, 0.5), (long_cloud, 2.0), (long_cloud, 0.0)):
+        sizes = np.full(len(points), size)
+        owners = rng.integers(0, 3, len(points))
+        want = max_penetration_per_object(points, sizes, owners, 3)
+        np.testing.assert_array_equal(max_penetration_pairs(points, sizes, owners, 3), want)
+        assert (want.max() > 0) == (size > 0)
 
 
 def test_timings_note_lists_the_measured_parts():
