@@ -1,0 +1,109 @@
+"""Benchmark of ParaView's time slider on the Muscle MSS pipeline (issue 15), in pvpython.
+
+The plugin's pipeline (:func:`muscle_mss.plugin.pipeline.build_pipeline`, shown in a render view
+as the GUI shows it) is built on the full demo thigh at N = 20 and 80 particles per fibre, and
+the animation time is stepped through time points as a user drags the time slider. Each step
+updates the filters in pipeline order and then renders; per step it records the seconds of the
+Rigid Pose Transform, the MSS Collision Solver (split into its iterations, from its convergence
+table's ``seconds`` column, and the rest), the MVC Surface Deformer, the Volume-Error Probe and
+the render. The first step (scene checks, MVC weights, bone fields, kernel loads) is listed
+apart from the steady state (mean of the later steps). Writes
+benchmarks/results/time_slider.md.
+
+    PYTHONPATH=$PWD/plugin/shim xvfb-run -a pvpython benchmarks/bench_time_slider.py \
+        [N ...] [--points K]                                     (default: 20 80, K = 4)
+"""
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+
+import numba
+import numpy as np
+from paraview import simple
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_solver import cpu_model, write_result  # noqa: E402
+
+from muscle_mss.core.demo_scene import demo_scene  # noqa: E402
+from muscle_mss.filters import bone_sets  # noqa: E402
+from muscle_mss.filters import vtk_arrays as V  # noqa: E402
+from muscle_mss.filters.scene_io import write_scene  # noqa: E402
+from muscle_mss.plugin.pipeline import build_pipeline, show_pipeline  # noqa: E402
+
+STAGES = ("Rigid Pose Transform", "MSS Collision Solver", "MVC Surface Deformer",
+          "Volume-Error Probe")
+COLUMNS = ("pose", "solver setup", "iterations", "MVC", "probe", "render")
+
+
+def slider_step(p, t, first=False) -> dict:
+    """Seconds of each of :data:`COLUMNS` for moving the time slider to ``t`` (``first``: the
+    pipeline is shown after this update, as Apply does in the GUI)."""
+    seconds = {}
+    for name, column in zip(STAGES, ("pose", "solver", "MVC", "probe")):
+        start = time.perf_counter()
+        p[name].UpdatePipeline(t)
+        seconds[column] = time.perf_counter() - start
+    table = p["MSS Collision Solver"].GetClientSideObject().GetOutputDataObject(1)
+    seconds["iterations"] = float(V.table_columns(table)["seconds"][-1])
+    seconds["solver setup"] = seconds.pop("solver") - seconds["iterations"]
+    start = time.perf_counter()
+    if first:
+        show_pipeline(p)
+    simple.GetAnimationScene().AnimationTime = t
+    simple.Render()
+    seconds["render"] = time.perf_counter() - start
+    return seconds
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("sizes", nargs="*", type=int, default=[20, 80])
+    parser.add_argument("--points", type=int, default=4, help="time slider steps per N")
+    args = parser.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        scene = os.path.join(folder, "scene")
+        write_scene(demo_scene("full"), scene)
+        for n in args.sizes:
+            for source in list(simple.GetSources().values()):
+                simple.Delete(source)
+            bone_sets.clear_bone_cache()        # each N's first step samples the bones
+            p = build_pipeline(scene, show=False, settings={"ParticlesPerFibre": n})
+            times = list(p["Rigid Pose Transform"].TimestepValues)
+            step = max(1, (len(times) - 1) // max(args.points - 1, 1))
+            steps = []
+            for t in times[::step][:args.points]:
+                steps.append(slider_step(p, t, first=not steps))
+                print(f"N={n} t={t:.3f}: " + ", ".join(f"{k} {v:.3f}"
+                                                       for k, v in steps[-1].items()), flush=True)
+            steady = {k: float(np.mean([s[k] for s in steps[1:]])) for k in COLUMNS}
+            rows.append((n, steps[0], steady, len(steps) - 1, os.getloadavg()[0]))
+    lines = [
+        "# ParaView's time slider on the Muscle MSS pipeline (issue 15)", "",
+        f"Machine: {cpu_model()}, {os.cpu_count()} cores; pvpython (Python "
+        f"{platform.python_version()}, numba {numba.__version__} with "
+        f"{numba.config.NUMBA_NUM_THREADS} threads, numpy {np.__version__}). Load average "
+        "(1 min) after each N is given.", "",
+        "Full demo thigh (13 muscles x 64 fibres, lattice-26, filter defaults), the plugin's "
+        "pipeline shown in a render view; `PYTHONPATH=$PWD/plugin/shim xvfb-run -a pvpython "
+        "benchmarks/bench_time_slider.py`. One row per N: the first step of the time slider, "
+        "then the mean of the later steps (steady state); the first step's render creates the "
+        "displays and the chart view as Apply does and renders once. 'around' = all but the "
+        "iterations.",
+        "",
+        "| N | step | " + " s | ".join(COLUMNS) + " s | around s | total s | load |",
+        "|---|---|" + "---|" * (len(COLUMNS) + 3),
+    ]
+    for n, first, steady, count, load in rows:
+        for label, s in (("first", first), (f"steady ({count})", steady)):
+            total = sum(s.values())
+            lines.append(f"| {n} | {label} | " + " | ".join(f"{s[k]:.3f}" for k in COLUMNS)
+                         + f" | {total - s['iterations']:.3f} | {total:.3f} | {load:.2f} |")
+    write_result(lines, "time_slider.md")
+
+
+if __name__ == "__main__":
+    main()
