@@ -124,11 +124,23 @@ def replaced_parts(pipeline, index, result, out) -> list:
     return rows
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def sizes_and_points(argv, description):
+    """The command line of this benchmark and of bench_time_slider: ``sizes`` (N values,
+    default 20 80) and ``--points`` (time points per N, first + rest, default 4)."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("sizes", nargs="*", type=int, default=[20, 80])
     parser.add_argument("--points", type=int, default=4, help="time points per N (first + rest)")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
+
+
+def spread(count, points) -> list:
+    """``points`` indices spread evenly over ``count`` time points, the first one included."""
+    step = max(1, (count - 1) // max(points - 1, 1))
+    return list(range(0, count, step))[:points]
+
+
+def main(argv=None):
+    args = sizes_and_points(argv, __doc__.splitlines()[0])
     clock = ChunkClock()
     S._solve_chunk = clock
     table, replaced = [], []
@@ -137,8 +149,7 @@ def main(argv=None):
         for n in args.sizes:
             bone_sets.clear_bone_cache()
             pipeline = build_pipeline(os.path.join(folder, "scene"), {"ParticlesPerFibre": n})
-            step = max(1, (len(pipeline.times) - 1) // max(args.points - 1, 1))
-            indices = list(range(0, len(pipeline.times), step))[:args.points]
+            indices = spread(len(pipeline.times), args.points)
             out = os.path.join(folder, f"out{n}")
             runs = []
             for index in indices:

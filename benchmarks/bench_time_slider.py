@@ -13,7 +13,6 @@ benchmarks/results/time_slider.md.
     PYTHONPATH=$PWD/plugin/shim xvfb-run -a pvpython benchmarks/bench_time_slider.py \
         [N ...] [--points K]                                     (default: 20 80, K = 4)
 """
-import argparse
 import os
 import platform
 import sys
@@ -26,6 +25,7 @@ from paraview import simple
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_solver import cpu_model, write_result  # noqa: E402
+from bench_time_point import sizes_and_points, spread  # noqa: E402
 
 from muscle_mss.core.demo_scene import demo_scene  # noqa: E402
 from muscle_mss.filters import bone_sets  # noqa: E402
@@ -59,10 +59,7 @@ def slider_step(p, t, first=False) -> dict:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("sizes", nargs="*", type=int, default=[20, 80])
-    parser.add_argument("--points", type=int, default=4, help="time slider steps per N")
-    args = parser.parse_args(argv)
+    args = sizes_and_points(argv, __doc__.splitlines()[0])
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         scene = os.path.join(folder, "scene")
@@ -73,9 +70,8 @@ def main(argv=None):
             bone_sets.clear_bone_cache()        # each N's first step samples the bones
             p = build_pipeline(scene, show=False, settings={"ParticlesPerFibre": n})
             times = list(p["Rigid Pose Transform"].TimestepValues)
-            step = max(1, (len(times) - 1) // max(args.points - 1, 1))
             steps = []
-            for t in times[::step][:args.points]:
+            for t in [times[i] for i in spread(len(times), args.points)]:
                 steps.append(slider_step(p, t, first=not steps))
                 print(f"N={n} t={t:.3f}: " + ", ".join(f"{k} {v:.3f}"
                                                        for k, v in steps[-1].items()), flush=True)
