@@ -43,7 +43,9 @@ Numba loop, ``_push_rest`` / ``_sample`` take a bone index, a rest-frame point a
 """
 from __future__ import annotations
 
+import hashlib
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numba
@@ -425,6 +427,37 @@ def _pseudo_normals(points, triangles):
     return face, edge, vertex
 
 
+def surface_digest(points, triangles) -> str:
+    """A digest of a triangle surface, bitwise: its points (n, 3) float64 and triangles (m, 3)
+    int64."""
+    digest = hashlib.blake2b(np.ascontiguousarray(triangles, dtype=np.int64).tobytes(),
+                             digest_size=20)
+    digest.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+# The last surfaces prepared for exact distances (digest -> _Surface): the Spring Builder and
+# the Rigid Pose Transform both test the same rest bones, and the hierarchy costs 0.3 s a bone
+# of the demo thigh.
+_SURFACES = OrderedDict()
+SURFACES_KEPT = 8
+
+
+def _prepared_surface(points, triangles, where) -> "_Surface":
+    """:class:`_Surface` of ``points``, ``triangles``, the same one while the surface is the
+    same bitwise (errors are raised each time)."""
+    points, triangles = checked_surface(points, triangles, where)
+    key = surface_digest(points, triangles)
+    if key in _SURFACES:
+        _SURFACES.move_to_end(key)
+        return _SURFACES[key]
+    surface = _Surface(points, triangles, where)
+    _SURFACES[key] = surface
+    while len(_SURFACES) > SURFACES_KEPT:
+        _SURFACES.popitem(last=False)
+    return surface
+
+
 class _Surface:
     """A closed triangle surface ready for exact signed distances: pseudo-normals and a
     bounding volume hierarchy of its triangles."""
@@ -451,7 +484,7 @@ def exact_signed_distance(points, triangles, queries, where="surface") -> np.nda
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if not np.isfinite(queries).all():
         raise MuscleMSSError(f"{where}: the query points must have finite coordinates")
-    surface = _Surface(points, triangles, where)
+    surface = _prepared_surface(points, triangles, where)
     out = np.empty(len(queries))
     if len(queries):
         _exact_at(queries, _chunks(len(queries)), *surface.kernel_arguments(), out)
@@ -489,7 +522,7 @@ def bone_distance_field(points, triangles, spacing=DEFAULT_SPACING, band=DEFAULT
     size = BRICK * spacing
     lower = points.min(axis=0) - padding
     dims = np.ceil((points.max(axis=0) + padding - lower) / size).astype(np.int64)
-    surface = _Surface(points, triangles, where)
+    surface = _prepared_surface(points, triangles, where)
     args = surface.kernel_arguments()
     _check_size(int(np.prod(dims * (BRICK // COARSE) + 1)), "coarse", spacing, where)
     axes = [lower[k] + COARSE * spacing * np.arange(dims[k] * BRICK // COARSE + 1)

@@ -16,7 +16,8 @@ motion; any other bone is sampled afresh. Sampling is itself equivariant under r
 (candidates and their visiting order follow the triangles, not the coordinates), so a moved
 cached set equals a fresh sampling of the moved bone up to rounding. The bones' signed distance
 fields (:func:`bone_solids`) go through a cache of the same kind: sampled once per bone shape
-(10 s for the three bones of the demo thigh), then placed by the fitted rigid motion.
+(10 s for the three bones of the demo thigh), then placed by the fitted rigid motion; a shape
+sampled by an earlier run is read from disk (:mod:`muscle_mss.core.field_store`).
 """
 import hashlib
 from collections import OrderedDict
@@ -24,7 +25,9 @@ from collections import OrderedDict
 import numpy as np
 
 from muscle_mss.core.bone_distance import (BoneFieldSet, bone_distance_field,
-                                           exact_signed_distance, signed_distances)
+                                           exact_signed_distance, signed_distances,
+                                           surface_digest)
+from muscle_mss.core import field_store
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
@@ -41,9 +44,11 @@ CACHE_ENTRIES = 64          # bone shapes kept (least recently used dropped)
 #: samplings), ``reused`` (same points, spheres returned as cached), ``moved`` (rigid copy).
 cache_counts = {"sampled": 0, "reused": 0, "moved": 0}
 _cache = OrderedDict()      # key -> list of (points (n, 3), (centres (k, 3), radii (k,)))
-#: The same for the bones' distance fields (:func:`cached_bone_field`), and ``remembered``:
-#: bones that :func:`bone_solids` returned from its memory of the same, unmodified blocks.
-field_counts = {"sampled": 0, "reused": 0, "moved": 0, "remembered": 0}
+#: The same for the bones' distance fields (:func:`cached_bone_field`), with ``loaded``: read
+#: from the disk store (:mod:`muscle_mss.core.field_store`) instead of sampled, and
+#: ``remembered``: bones that :func:`bone_solids` returned from its memory of the same,
+#: unmodified blocks.
+field_counts = {"sampled": 0, "loaded": 0, "reused": 0, "moved": 0, "remembered": 0}
 _field_cache = OrderedDict()    # key -> list of (points (n, 3), BoneDistanceField)
 _packed = {}                    # the last packed BoneFieldSet and the fields it holds
 _solids = OrderedDict()         # the blocks' VTK identities -> bone_solids' result
@@ -134,7 +139,9 @@ def cached_bone_field(points, triangles, where: str = "bone"):
     """The signed distance field of one bone surface (:func:`muscle_mss.core.bone_distance.
     bone_distance_field`, default spacing) through a rigid-bone cache like the spheres': the
     field of the first surface of this shape, and the (3, 4) transform from that field's frame
-    to ``points``. Returns ``(BoneDistanceField, transform)``."""
+    to ``points``. A shape not in memory is read from the disk store of earlier runs
+    (:mod:`muscle_mss.core.field_store`) or sampled and stored there. Returns
+    ``(BoneDistanceField, transform)``."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     key = _cache_key(points, triangles)
     found = _cached(_field_cache, key, points)
@@ -144,8 +151,14 @@ def cached_bone_field(points, triangles, where: str = "bone"):
         if rotation is None:
             return field, np.eye(3, 4)
         return field, np.hstack([rotation, translation[:, None]])
-    field = bone_distance_field(points, triangles, where=where)
-    field_counts["sampled"] += 1
+    stored = surface_digest(points, triangles)
+    field = field_store.load(stored)
+    if field is not None:
+        field_counts["loaded"] += 1
+    else:
+        field = bone_distance_field(points, triangles, where=where)
+        field_counts["sampled"] += 1
+        field_store.save(stored, field)
     _store(_field_cache, key, points, field)
     return field, np.eye(3, 4)
 

@@ -1,5 +1,13 @@
-"""Shared fixtures: the small demo scene in memory and on disk (the tests' default data)."""
+"""Shared fixtures: the small demo scene in memory and on disk (the tests' default data).
+
+The bones' distance fields are not read from or written to the user's disk store
+(:mod:`muscle_mss.core.field_store`) during the tests, nor by the ParaView processes they start:
+every run samples them, so the sampling counts the tests assert are exact."""
+import os
+
 import pytest
+
+os.environ["MUSCLE_MSS_BONE_FIELDS"] = "off"
 
 
 @pytest.fixture(scope="session")

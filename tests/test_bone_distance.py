@@ -67,6 +67,26 @@ def test_exact_distance_matches_the_brute_force_reference_inside_and_out():
         np.testing.assert_allclose(fast, slow, atol=1e-9)
 
 
+def test_a_surface_is_prepared_once_while_it_stays_bitwise_the_same():
+    from muscle_mss.core import bone_distance
+    bone_distance._SURFACES.clear()
+    points, triangles = sphere_mesh(10.0, levels=2)
+    queries = np.random.default_rng(2).uniform(-15, 15, (50, 3))
+    first = exact_signed_distance(points, triangles, queries)
+    prepared = list(bone_distance._SURFACES.values())
+    np.testing.assert_array_equal(exact_signed_distance(points.copy(), triangles, queries), first)
+    assert list(bone_distance._SURFACES.values()) == prepared and len(prepared) == 1
+    moved = points + [0.5, 0.0, 0.0]                     # another surface: prepared afresh
+    np.testing.assert_allclose(exact_signed_distance(moved, triangles, queries + [0.5, 0, 0]),
+                               first, atol=1e-12)
+    assert len(bone_distance._SURFACES) == 2
+    open_surface = triangles[1:]                         # refused every time, never kept
+    for _ in range(2):
+        with pytest.raises(MuscleMSSError, match="open"):
+            exact_signed_distance(points, open_surface, queries)
+    assert len(bone_distance._SURFACES) == 2
+
+
 def test_sphere_field_matches_the_analytic_distance_within_half_a_cell():
     points, triangles = sphere_mesh(12.0)
     field = bone_field_set([(points, triangles)], spacing=1.0)

@@ -97,7 +97,8 @@ def test_bone_solids_remember_unmodified_blocks_and_refit_a_moved_one():
     bones = V.make_multiblock([("femur", V.make_polydata(points, triangles))])
     fields, transforms = bone_sets.bone_solids(bones)
     again, remembered = bone_sets.bone_solids(bones)
-    assert bone_sets.field_counts == {"sampled": 1, "reused": 0, "moved": 0, "remembered": 1}
+    assert bone_sets.field_counts == {"sampled": 1, "loaded": 0, "reused": 0, "moved": 0,
+                                      "remembered": 1}
     assert again is fields
     np.testing.assert_array_equal(remembered, transforms)
     remembered[0, 0, 3] = 99.0  # a caller's change does not reach the memory
@@ -110,6 +111,41 @@ def test_bone_solids_remember_unmodified_blocks_and_refit_a_moved_one():
     _, moved = bone_sets.bone_solids(bones)
     assert bone_sets.field_counts["moved"] == 1 and bone_sets.field_counts["remembered"] == 2
     np.testing.assert_allclose(moved[0], np.hstack([r, t[:, None]]), atol=1e-9)
+
+
+def test_fields_are_stored_on_disk_and_read_back_bitwise_by_a_later_run(tmp_path, monkeypatch):
+    from muscle_mss.core import field_store
+    monkeypatch.setenv(field_store.ENVIRONMENT, str(tmp_path))
+    points, triangles = bone()
+    sampled, _ = bone_sets.cached_bone_field(points, triangles)
+    assert bone_sets.field_counts["sampled"] == 1
+    assert [p.suffix for p in tmp_path.iterdir()] == [".npz"]
+    bone_sets.clear_bone_cache()                     # a later run: nothing in memory
+    loaded, transform = bone_sets.cached_bone_field(points, triangles)
+    assert bone_sets.field_counts["sampled"] == 0 and bone_sets.field_counts["loaded"] == 1
+    np.testing.assert_array_equal(transform, np.eye(3, 4))
+    assert loaded.spacing == sampled.spacing
+    for name in ("origin", "dims", "coarse", "brick_index", "bricks"):
+        got, want = getattr(loaded, name), getattr(sampled, name)
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+    # another bone (one point moved) is another file; a damaged file is sampled again
+    bent = points.copy()
+    bent[0] += 0.01
+    bone_sets.cached_bone_field(bent, triangles)
+    assert bone_sets.field_counts["sampled"] == 1 and len(list(tmp_path.iterdir())) == 2
+    for stored in tmp_path.iterdir():
+        stored.write_bytes(stored.read_bytes()[:100])
+    bone_sets.clear_bone_cache()
+    bone_sets.cached_bone_field(points, triangles)
+    assert bone_sets.field_counts["sampled"] == 1 and bone_sets.field_counts["loaded"] == 0
+    # off: neither read nor written
+    monkeypatch.setenv(field_store.ENVIRONMENT, "off")
+    bone_sets.clear_bone_cache()
+    for stored in tmp_path.iterdir():
+        stored.unlink()
+    bone_sets.cached_bone_field(points, triangles)
+    assert bone_sets.field_counts["sampled"] == 1 and not list(tmp_path.iterdir())
 
 
 def test_rest_surface_checked_once_per_content():
