@@ -154,13 +154,16 @@ def main(argv=None):
             runs = []
             for index in indices:
                 seconds, result = time_point_parts(pipeline, index, out, clock)
+                if not runs:
+                    fields = ("bone fields from disk" if bone_sets.field_counts["loaded"]
+                              else "bone fields sampled")
                 runs.append(seconds)
                 print(f"N={n} t={pipeline.times[index]:.3f}: "
                       + ", ".join(f"{k} {v:.3f}" for k, v in seconds.items())
                       + f"; load {os.getloadavg()[0]:.2f}", flush=True)
             steady = {k: float(np.mean([r[k] for r in runs[1:]])) for k in PARTS} \
                 if len(runs) > 1 else None
-            table.append((n, runs[0], steady, len(runs) - 1, os.getloadavg()[0]))
+            table.append((n, runs[0], steady, len(runs) - 1, os.getloadavg()[0], fields))
             replaced += [(n,) + r for r in replaced_parts(pipeline, indices[-1], result, out)]
     lines = [
         "# One time point of a motion run, part by part (issue 15)", "",
@@ -170,12 +173,14 @@ def main(argv=None):
         "machine is shared, so the seconds are pessimistic and vary between runs.", "",
         "Full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations), the CLI's "
         "pipeline; `python benchmarks/bench_time_point.py`. Steady state: mean of the time "
-        "points after the first. 'around' = all but the iterations.", "",
+        "points after the first. The first time point reads the bones' distance fields from the "
+        "disk store of an earlier run when it has them (core/field_store.py), else samples "
+        "them; its row says which. 'around' = all but the iterations.", "",
         "| N | time point | " + " | ".join(f"{p} s" for p in PARTS) + " | around s | total s "
         "| load |",
         "|---|---|" + "---|" * (len(PARTS) + 3)]
-    for n, first, steady, count, load in table:
-        for label, seconds in (("first", first), (f"steady ({count})", steady)):
+    for n, first, steady, count, load, fields in table:
+        for label, seconds in ((f"first ({fields})", first), (f"steady ({count})", steady)):
             if seconds is None:
                 continue
             around = sum(v for k, v in seconds.items() if k != "iterations")
