@@ -50,9 +50,9 @@ def slider_step(p, t, first=False) -> dict:
     seconds["iterations"] = float(V.table_columns(table)["seconds"][-1])
     seconds["solver setup"] = seconds.pop("solver") - seconds["iterations"]
     start = time.perf_counter()
+    simple.GetAnimationScene().AnimationTime = t    # before the displays exist: they ask for t
     if first:
         show_pipeline(p)
-    simple.GetAnimationScene().AnimationTime = t
     simple.Render()
     seconds["render"] = time.perf_counter() - start
     return seconds
@@ -65,8 +65,13 @@ def main(argv=None):
         scene = os.path.join(folder, "scene")
         write_scene(demo_scene("full"), scene)
         for n in args.sizes:
+            # a fresh session for each N: the last N's pipeline, views and layouts removed
             for source in list(simple.GetSources().values()):
                 simple.Delete(source)
+            for view in list(simple.GetViews()):
+                simple.Delete(view)
+            for layout in list(simple.GetLayouts().values()):
+                simple.RemoveLayout(layout)
             bone_sets.clear_bone_cache()        # each N's first step samples the bones
             p = build_pipeline(scene, show=False, settings={"ParticlesPerFibre": n})
             times = list(p["Rigid Pose Transform"].TimestepValues)
