@@ -213,15 +213,22 @@ def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
     return np.concatenate(centres), np.concatenate(radii), np.concatenate(ids)
 
 
-def particles_in_bones(points, free, in_bone_at_rest, bones, where: str = "bones") -> tuple:
-    """``(count, deepest mm, new count, new deepest mm)`` of the ``free`` (n,) bool particles at
-    ``points`` (n, 3) mm whose centre is inside a bone of the posed multiblock ``bones`` by more
-    than :data:`INSIDE_TOLERANCE` (its cached distance field, :func:`bone_solids`), all of them
-    and those not ``in_bone_at_rest`` (n,) bool (None: not known, all count as new)."""
-    free = np.asarray(free, dtype=bool)
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)[free]
+def bone_depths(points, bones, where: str = "bones") -> np.ndarray:
+    """How deep (mm, (n,)) each of ``points`` (n, 3) mm lies inside a bone of the posed
+    multiblock ``bones`` (its cached distance field, :func:`bone_solids`): minus the smallest
+    signed distance, negative outside every bone."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     fields, transforms = bone_solids(bones, where)
-    depth = -signed_distances(fields, points, transforms)[0].min(axis=1, initial=np.inf)
+    return -signed_distances(fields, points, transforms)[0].min(axis=1, initial=np.inf)
+
+
+def particles_in_bones(depth, free, in_bone_at_rest) -> tuple:
+    """``(count, deepest mm, new count, new deepest mm)`` of the ``free`` (n,) bool particles
+    whose centre is inside a bone by more than :data:`INSIDE_TOLERANCE`, their ``depth`` (n,)
+    mm as :func:`bone_depths` gives it, all of them and those not ``in_bone_at_rest`` (n,)
+    bool (None: not known, all count as new)."""
+    free = np.asarray(free, dtype=bool)
+    depth = np.asarray(depth, dtype=np.float64)[free]
     inside = depth > INSIDE_TOLERANCE
     new = inside if in_bone_at_rest is None else inside & ~np.asarray(in_bone_at_rest,
                                                                        dtype=bool)[free]

@@ -46,6 +46,7 @@ default because they are also the faster (``benchmarks/results/bone_contact.md``
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 
 import numpy as np
@@ -59,7 +60,7 @@ from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError
 
 from . import array_names as A
-from .bone_sets import bone_solids, bone_sphere_set, particles_in_bones
+from .bone_sets import bone_depths, bone_solids, bone_sphere_set, particles_in_bones
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .properties import Property
@@ -81,8 +82,10 @@ def solid_bones(posed_bones) -> BoneSolids:
     return BoneSolids(fields, transforms, np.zeros(len(fields)))
 
 
-def _muscle_block(name, block):
-    """Arrays of one muscle block, checked."""
+def _muscle_block(name, block, known: dict | None = None):
+    """Arrays of one muscle block, checked. ``known``: this function's answer for a block with
+    the same arrays (:func:`~muscle_mss.filters.vtk_arrays.arrays_identity`), whose arrays other
+    than the coordinates are then taken as they are (checked then)."""
     where = f"{MODEL} block '{name}'"
     V.require_polydata(block, where, "a model block of particles and spring lines")
     n = block.GetNumberOfPoints()
@@ -92,6 +95,8 @@ def _muscle_block(name, block):
     if not np.isfinite(points).all():
         bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
         raise MuscleMSSError(f"{where}: particle {bad} has a NaN or infinite position")
+    if known is not None:
+        return {**known, "points": points}
     data = {key: V.point_array(block, key, where) for key in POINT_ARRAYS}
     grid = V.point_array(block, A.FIBRE_GRID, where, required=False)
     in_bone = V.point_array(block, A.IN_BONE_AT_REST, where, required=False)
@@ -270,7 +275,15 @@ class MSSCollisionSolver(MuscleFilter):
         super().__init__()
         self._prepared_key = None
         self._prepared = None
+        self._prepared_identity = None
         self._last = None       # (key, posed, solved) of the last quasi-static solve
+        # per model block name: (arrays_identity, checked arrays) of the last update, and the
+        # model's arrays other than the coordinates (identities, MSSModel): every time point
+        # of a motion brings the same arrays with new coordinates (the Rigid Pose Transform
+        # shares them), so they are checked, concatenated and hashed once
+        self._blocks = {}
+        self._static = (None, None)
+        self.setup_counts = {"checked": 0, "remembered": 0}
 
     def settings(self) -> S.SolverSettings:
         """The properties as the core's :class:`SolverSettings`."""
@@ -291,16 +304,17 @@ class MSSCollisionSolver(MuscleFilter):
         if not blocks:
             raise MuscleMSSError(f"the {MODEL} input has no blocks; it needs one block per "
                                  "muscle")
-        parts = [_muscle_block(name, block) for name, block in blocks]
-        model = self._model([name for name, _ in blocks], parts)
+        identities, parts = zip(*(self._checked_block(name, block) for name, block in blocks))
+        model = self._posed_model([name for name, _ in blocks], parts, identities)
         bones, solids = (None, None, None), None
         if self.choice("BoneContact") != "solid":
             bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
         elif self.value("MuscleBone"):
             solids = solid_bones(inputs[1])
-        prepared = self._prepare(model)
+        prepared = self._prepare(model, identities)
         result = self._solve(model, bones, solids, prepared)
         items = []
+        depth = bone_depths(result.positions, inputs[1], BONES)
         for m, ((name, block), part) in enumerate(zip(blocks, parts)):
             lo, hi = model.offsets[m], model.offsets[m + 1]
             out = V.with_points(block, result.positions[lo:hi])
@@ -310,7 +324,7 @@ class MSSCollisionSolver(MuscleFilter):
             in_bone = (None if model.in_bone_at_rest is None
                        else model.in_bone_at_rest[lo:hi])
             for key, value in zip(A.FREE_IN_BONE_FIELDS, particles_in_bones(
-                    result.positions[lo:hi], ~model.fixed[lo:hi], in_bone, inputs[1], BONES)):
+                    depth[lo:hi], ~model.fixed[lo:hi], in_bone)):
                 V.set_field(out, key, value)
             items.append((name, out))
         V.fill_multiblock(outputs[0], items)
@@ -401,9 +415,42 @@ class MSSCollisionSolver(MuscleFilter):
                           np.concatenate([p[A.REST_POSITION].reshape(-1, 3) for p in parts]),
                           in_bone)
 
-    def _prepare(self, model: S.MSSModel) -> S.PreparedModel:
+    def _checked_block(self, name, block):
+        """``(arrays identity, checked arrays)`` of one model block (:func:`_muscle_block`),
+        its arrays other than the coordinates taken from the last update when it had the same
+        identity."""
+        V.require_polydata(block, f"{MODEL} block '{name}'",
+                           "a model block of particles and spring lines")
+        identity = V.arrays_identity(block)
+        known = self._blocks.get(name)
+        if known is not None and known[0] == identity:
+            self.setup_counts["remembered"] += 1
+            return identity, _muscle_block(name, block, known[1])
+        part = _muscle_block(name, block)
+        self._blocks[name] = (identity, {k: v for k, v in part.items() if k != "points"})
+        self.setup_counts["checked"] += 1
+        return identity, part
+
+    def _posed_model(self, names, parts, identities) -> S.MSSModel:
+        """:meth:`_model`, its arrays other than the coordinates reused while the blocks'
+        identities are those of the last update."""
+        key = (tuple(names), tuple(identities))
+        for name in set(self._blocks) - set(names):
+            del self._blocks[name]
+        if self._static[0] == key:
+            return dataclasses.replace(self._static[1], positions=np.concatenate(
+                [p["points"] for p in parts]))
+        model = self._model(names, parts)
+        self._static = (key, model)
+        return model
+
+    def _prepare(self, model: S.MSSModel, identities=None) -> S.PreparedModel:
         """The particle order and spring layout, reused while the model's topology and spring
-        parameters stay the same (every time point of a motion)."""
+        parameters stay the same (every time point of a motion): while the blocks' array
+        identities stay the same, else while the arrays' contents do."""
+        if identities is not None and identities == self._prepared_identity:
+            return self._prepared
+        self._prepared_identity = identities
         digest = hashlib.sha1()
         for array in (model.offsets, model.springs, model.rest_length, model.stiffness,
                       model.damping, model.fixed, model.mass, model.boundary, model.radius,

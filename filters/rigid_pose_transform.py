@@ -273,6 +273,16 @@ class RigidPoseTransform(MuscleFilter):
             "model": ranges[:len(model_rest)],
             "surfaces": ranges[len(model_rest):],
         }
+        # the point arrays every posed block gets, made once: the same VTK arrays at every
+        # time point let the solver know its model's arrays unchanged (V.arrays_identity)
+        self._rest["model arrays"] = [
+            [V.point_data_array(A.BONE_WEIGHTS, weights[start:stop])]
+            + ([] if radii is None else [V.point_data_array(A.RADIUS, radii)])
+            + [V.point_data_array(A.IN_BONE_AT_REST, inside.astype(np.uint8))]
+            for (start, stop), (radii, inside) in zip(self._rest["model"], clearance)]
+        self._rest["surface arrays"] = [
+            [V.point_data_array(A.BONE_WEIGHTS, weights[start:stop])]
+            for start, stop in self._rest["surfaces"]]
         self._rest_key = key
         return self._rest
 
@@ -301,27 +311,25 @@ class RigidPoseTransform(MuscleFilter):
         for b, rows in rest["attached"].items():
             posed_points[rows] = transform_rigid(rest["points"][rows], matrices[b])
 
-        def posed(items, ranges):
+        def posed(items, ranges, arrays):
             out = []
-            for (name, block), (start, stop) in zip(items, ranges):
+            for (name, block), (start, stop), shared in zip(items, ranges, arrays):
                 moved = V.with_points(block, posed_points[start:stop])
-                V.set_point_array(moved, A.BONE_WEIGHTS, rest["weights"][start:stop])
+                V.add_point_arrays(moved, shared)
                 V.set_field(moved, A.BONE_NAMES, bone_names)
                 out.append((name, moved))
             return out
 
-        model_out = posed(model_items, rest["model"])
-        for (_, moved), ends, (radii, inside) in zip(model_out, rest["ends"], rest["clearance"]):
+        model_out = posed(model_items, rest["model"], rest["model arrays"])
+        for (_, moved), ends in zip(model_out, rest["ends"]):
             for array, bone in ends.items():
                 V.set_field(moved, array, bone)
-            if radii is not None:
-                V.set_point_array(moved, A.RADIUS, radii)
-            V.set_point_array(moved, A.IN_BONE_AT_REST, inside.astype(np.uint8))
         V.fill_multiblock(outputs[0], model_out)
         V.fill_multiblock(outputs[1], [
             (name, V.with_points(block, transform_rigid(points, matrices[b])))
             for b, ((name, block), points) in enumerate(zip(bone_items, rest["bones"]))])
-        V.fill_multiblock(outputs[2], posed(surface_items, rest["surfaces"]))
+        V.fill_multiblock(outputs[2], posed(surface_items, rest["surfaces"],
+                                            rest["surface arrays"]))
         for out in outputs:
             out.GetInformation().Set(vtkDataObject.DATA_TIME_STEP(), time)
         self.progress(1.0)

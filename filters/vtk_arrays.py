@@ -92,6 +92,23 @@ def with_points(polydata, points) -> vtkPolyData:
     return out
 
 
+def arrays_identity(polydata) -> tuple:
+    """What identifies a vtkPolyData's cells and point and cell arrays, but not its coordinates:
+    the number of points and each array's and cell array's VTK object with its modification
+    time. :func:`with_points` keeps it (the arrays are shared), so the posed blocks of every
+    time point of a motion have the same identity; a new, replaced or modified array (its
+    ``Modified()``, as every VTK setter calls) changes it."""
+    out = [polydata.GetNumberOfPoints()]
+    for data in (polydata.GetPointData(), polydata.GetCellData()):
+        for i in range(data.GetNumberOfArrays()):
+            array = data.GetAbstractArray(i)
+            out.append((array.GetName(), array.__this__, array.GetMTime()))
+    for cells in (polydata.GetVerts(), polydata.GetLines(), polydata.GetPolys(),
+                  polydata.GetStrips()):
+        out.append(None if cells is None else (cells.__this__, cells.GetMTime()))
+    return tuple(out)
+
+
 # ---- data arrays ---------------------------------------------------------------------------
 
 def _get(data, name, where, required):
@@ -127,6 +144,20 @@ def _to_vtk(name, values):
 def set_point_array(dataset, name: str, values) -> None:
     """Add (or replace) a point-data array; (n,) or (n, k) values."""
     dataset.GetPointData().AddArray(_to_vtk(name, values))
+
+
+def point_data_array(name: str, values):
+    """A new VTK array of ``values`` ((n,) or (n, k)) to share among the outputs of several
+    updates (:func:`add_point_arrays`): the same array keeps the outputs'
+    :func:`arrays_identity`."""
+    return _to_vtk(name, values)
+
+
+def add_point_arrays(dataset, arrays) -> None:
+    """Add (or replace, by name) the VTK ``arrays`` as point data, shared, not copied."""
+    data = dataset.GetPointData()
+    for array in arrays:
+        data.AddArray(array)
 
 
 def set_cell_array(dataset, name: str, values) -> None:

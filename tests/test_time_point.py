@@ -265,3 +265,63 @@ def test_every_compressor_reads_back_the_same_series_and_caches_repeat_bitwise(
     assert check_cache.check_counts["reused"] > checks["reused"]
     strip = [{k: v for k, v in r.items() if k != "seconds"} for r in result.rows]
     assert strip == [{k: v for k, v in r.items() if k != "seconds"} for r in again.rows]
+
+
+def solved_points(pipeline, t):
+    from muscle_mss.filters import vtk_arrays as V
+    out = motion_run.update_at(pipeline.solver, 0, t)
+    return {name: V.points_of(block) for name, block in V.blocks(out)}
+
+
+def test_solver_checks_its_model_arrays_once_per_change_and_gives_the_same_particles(
+        small_scene_dir):
+    """The posed model's arrays other than the coordinates are checked, concatenated and
+    ordered once while the Rigid Pose Transform hands the same arrays on; a changed property
+    upstream or an array modified in place is seen; the particles are bitwise those of a solver
+    that never saw the model before."""
+    from muscle_mss.filters import MSSCollisionSolver
+    from muscle_mss.filters import vtk_arrays as V
+    pipeline = motion_run.build_pipeline(small_scene_dir, {"Iterations": 5})
+    solver, times = pipeline.solver, pipeline.times
+    blocks = len(V.blocks(motion_run.update_at(pipeline.pose, 0, times[0])))
+    solved_points(pipeline, times[0])
+    prepared = solver._prepared
+    later = solved_points(pipeline, times[2])
+    assert solver.setup_counts == {"checked": blocks, "remembered": blocks}
+    assert solver._prepared is prepared
+
+    def fresh(t):
+        other = MSSCollisionSolver()
+        other.SetIterations(5)
+        for port in range(2):
+            other.SetInputConnection(port, pipeline.pose.GetOutputPort(port))
+        out = motion_run.update_at(other, 0, t)
+        return {name: V.points_of(block) for name, block in V.blocks(out)}
+
+    want = fresh(times[2])
+    assert want.keys() == later.keys()
+    for name in want:
+        np.testing.assert_array_equal(later[name], want[name])
+
+    # a changed spring property upstream: new arrays, checked again, a new ordering
+    pipeline.springs.SetStiffness(2.0 * pipeline.springs.GetStiffness())
+    stiffer = solved_points(pipeline, times[2])
+    assert solver.setup_counts == {"checked": 2 * blocks, "remembered": blocks}
+    assert solver._prepared is not prepared
+    assert any(not np.array_equal(stiffer[n], later[n]) for n in later)
+    want = fresh(times[2])
+    for name in want:
+        np.testing.assert_array_equal(stiffer[name], want[name])
+
+    # an array modified in place (and marked so) is checked again: a bad mass is refused
+    model = pipeline.springs.GetOutputDataObject(0)
+    name, block = V.blocks(model)[0]
+    mass = block.GetPointData().GetArray("mass")
+    fixed = V.point_array(block, "fixed")
+    mass.SetValue(int(np.flatnonzero(fixed == 0)[0]), -1.0)
+    mass.Modified()
+    pipeline.pose.Modified()
+    with pytest.raises(MuscleMSSError, match=f"block '{name}'.*mass"):
+        solver.execute([motion_run.update_at(pipeline.pose, 0, times[1]),
+                        motion_run.update_at(pipeline.pose, 1, times[1])],
+                       [None, None])
