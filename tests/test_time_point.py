@@ -173,8 +173,10 @@ def test_rigid_fit_recovers_a_known_motion():
     assert residual < 1e-9
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_penetration_grid_equals_the_reference_bitwise(seed):
+@pytest.mark.parametrize("seed, cell_radii", [(1, 1.0), (2, 0.3), (3, 2.5)])
+def test_penetration_grid_equals_the_reference_bitwise(seed, cell_radii, monkeypatch):
+    from muscle_mss.core import penetration
+    monkeypatch.setattr(penetration, "CELL_RADII", cell_radii)   # grids fine and coarse
     rng = np.random.default_rng(seed)
     n, k = 400, 120
     centres = rng.uniform(0, 30, (n, 3))
@@ -188,7 +190,7 @@ def test_penetration_grid_equals_the_reference_bitwise(seed):
         np.testing.assert_array_equal(got, want)
         assert want[:5].min() > 0 and want[5] == 0  # object 5 has no spheres
     np.testing.assert_array_equal(max_penetration_pairs(np.zeros((0, 3)), [], [], 2), [0, 0])
-    # spheres on the grid's cell boundaries (cell = twice the largest radius = 1 mm), a
+    # spheres on the grid's cell boundaries (cell = CELL_RADII times the largest radius), a
     # long thin cloud, and radii all 0 (no overlap: a tiny cell)
     lattice = np.stack(np.meshgrid(*[np.arange(4.0)] * 3), axis=-1).reshape(-1, 3)
     lattice = np.vstack([lattice, lattice + rng.normal(0, 0.3, lattice.shape)])
