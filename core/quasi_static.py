@@ -377,6 +377,23 @@ def _field_contacts(x, gradient, weight, particle, radius, fixed, clearance, tra
         deepest[i] = worst
 
 
+@njit(cache=True, parallel=True)
+def _near_solids(x, particle, radius, reach, transforms, origin, spacing, dims, coarse_start,
+                 coarse, index_start, brick_index, bricks, near):
+    """``near[i]``: whether particle ``particle[i]`` lies within its ``radius[i]`` plus
+    ``reach[b]`` (mm) of some bone ``b`` as a solid (its sampled signed distance)."""
+    for i in prange(particle.shape[0]):
+        p = particle[i]
+        near[i] = False
+        for b in range(transforms.shape[0]):
+            qx, qy, qz = _to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
+            value = _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
+                            index_start, brick_index, bricks)[0]
+            if value < radius[i] + reach[b]:
+                near[i] = True
+                break
+
+
 @njit(cache=True)
 def _moved_more(x, particle, built, limit):
     """Whether a sphere's particle is farther than ``limit`` mm from ``built`` (3, s)."""
@@ -426,6 +443,13 @@ class _Energy:
         self.solid_overlaps = np.zeros((k, 2), dtype=np.int64)
         self.solid_deepest = np.zeros(k)
         self.solid_fixed = np.zeros(k, dtype=np.bool_)
+        # the solid points within their radius plus clearance plus the skin of a bone when
+        # the list was built (at positions solid_built): the others cannot touch a bone
+        # before one of them moves half the skin (a sampled distance changes by at most sqrt(3)
+        # times a move), so the penalty skips them
+        self.solid_built = np.zeros((3, k))
+        self.solid_mask = np.zeros(k, dtype=np.bool_)
+        self.near = None                 # (indices into solid_points, their particles, ...)
         self.built = np.zeros((3, ns))
         self.bone_table = None
         if self.muscle_bone:
@@ -436,6 +460,7 @@ class _Energy:
         self.mm = self.mb = (none, none, np.zeros(0, dtype=np.int64))
         self.lists_built = False
         self.rebuilds = 0
+        self.solid_rebuilds = 0
         self.seconds = np.zeros(3)       # elastic, muscle contacts, bone contacts
 
     def _refresh_lists(self):
@@ -462,6 +487,24 @@ class _Energy:
         self.lists_built = True
         self.rebuilds += 1
 
+    def _refresh_near_solids(self):
+        """Rebuild the list of solid points near a bone when one of them moved half the skin
+        since (see ``solid_built``)."""
+        if self.near is not None and not _moved_more(self.x, self.solid_points,
+                                                     self.solid_built, 0.5 * self.skin):
+            return
+        solids = self.solids
+        self.solid_built[:] = self.x[:, self.solid_points]
+        _near_solids(self.x, self.solid_points, self.solid_radius,
+                     solids.clearance + self.skin, solids.transforms, *solids.fields.arrays(),
+                     self.solid_mask)
+        index = np.flatnonzero(self.solid_mask)
+        k = len(index)
+        self.near = (index, self.solid_points[index], self.solid_radius[index],
+                     self.solid_fixed[index], np.zeros(k), np.zeros((k, 2), dtype=np.int64),
+                     np.zeros(k))
+        self.solid_rebuilds += 1
+
     def evaluate(self, free_positions):
         """Set the free particles to ``free_positions`` (f, 3) and return ``(energy, gradient
         (f, 3), volume gradient (f, 3))``; the contact statistics stay on the object."""
@@ -482,12 +525,17 @@ class _Energy:
                       self.overlaps, self.deepest)
         if self.solids is not None and len(self.solid_points):
             solids = self.solids
-            for array in (self.solid_energy, self.solid_overlaps, self.solid_deepest):
+            self._refresh_near_solids()
+            index, points, radius, fixed, energy, overlaps, deepest = self.near
+            for array in (self.solid_energy, self.solid_overlaps, self.solid_deepest, energy,
+                          overlaps, deepest):
                 array[:] = 0
-            _field_contacts(self.x, self.gradient, self.weight, self.solid_points,
-                            self.solid_radius, self.solid_fixed,
+            _field_contacts(self.x, self.gradient, self.weight, points, radius, fixed,
                             solids.clearance, solids.transforms, *solids.fields.arrays(),
-                            self.solid_energy, self.solid_overlaps, self.solid_deepest)
+                            energy, overlaps, deepest)
+            self.solid_energy[index] = energy
+            self.solid_overlaps[index] = overlaps
+            self.solid_deepest[index] = deepest
         self.seconds[1] += time.perf_counter() - tick
         energy = float(self.muscle_energy.sum() + self.sphere_energy.sum()
                        + self.solid_energy.sum())

@@ -318,6 +318,33 @@ def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
     assert result.max_penetration[-1] > 1e-3
 
 
+def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(monkeypatch):
+    """The bones' penalty looks only at the particles listed near a bone (within radius,
+    clearance and skin when the list was made, remade when one moved half the skin): the
+    solve is bitwise the one that looks at every particle every time."""
+    model, _, solids, _ = chain_in_a_box(3.0)
+    settings = Q.QuasiStaticSettings(tolerance=1e-4, iterations=3000)
+    listed_sizes = []
+    refresh = Q._Energy._refresh_near_solids
+
+    def recording(self):
+        refresh(self)
+        listed_sizes.append((len(self.near[0]), len(self.solid_points)))
+
+    monkeypatch.setattr(Q._Energy, "_refresh_near_solids", recording)
+    listed = Q.solve(model, settings=settings, bone_solids=solids)
+    assert listed.converged
+    assert min(size for size, _ in listed_sizes) < listed_sizes[0][1]   # some were skipped
+
+    def everything_near(*arguments):
+        arguments[-1][:] = True
+
+    monkeypatch.setattr(Q, "_near_solids", everything_near)
+    full = Q.solve(model, settings=settings, bone_solids=solids)
+    np.testing.assert_array_equal(listed.positions, full.positions)
+    np.testing.assert_array_equal(listed.residual, full.residual)
+
+
 def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side():
     """The paper's response moves each sphere out by its own nearest face, so here the box's +x
     face is the nearest for every particle inside it (the chain's x = 0 strand, 1 mm deep, 1.5
