@@ -365,32 +365,65 @@ def _hierarchy(points, triangles):
     order)`` as :func:`_nearest_signed` takes them."""
     m = len(triangles)
     corners = points[triangles]                       # (m, 3, 3)
-    tri_low, tri_high = corners.min(axis=1), corners.max(axis=1)
-    centroid = corners.mean(axis=1)
-    order = np.arange(m, dtype=np.int64)
     size = 2 * m + 1
     low, high = np.empty((size, 3)), np.empty((size, 3))
     child = np.full(size, -1, dtype=np.int64)
     first, count = np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
+    order = np.arange(m, dtype=np.int64)
+    nodes = _split_nodes(corners.min(axis=1), corners.max(axis=1), corners.mean(axis=1),
+                         LEAF_SIZE, low, high, child, first, count, order)
+    return low[:nodes], high[:nodes], child[:nodes], first[:nodes], count[:nodes], order
+
+
+@njit(cache=True)
+def _split_nodes(tri_low, tri_high, centroid, leaf_size, low, high, child, first, count,
+                 order):
+    """Build :func:`_hierarchy`'s nodes in place from the triangles' boxes ``tri_low``,
+    ``tri_high`` and ``centroid`` (m, 3); returns the number of nodes (a Python loop over the
+    nodes took 0.3 s a bone of the demo thigh)."""
+    m = centroid.shape[0]
     count[0] = m
-    nodes, pending = 1, [0]
-    while pending:
-        node = pending.pop()
+    pending = np.empty(low.shape[0], dtype=np.int64)
+    pending[0] = 0
+    top, nodes = 1, 1
+    lowest = np.empty(3)
+    highest = np.empty(3)
+    c_low = np.empty(3)
+    c_high = np.empty(3)
+    while top > 0:
+        top -= 1
+        node = pending[top]
         start, n = first[node], count[node]
-        members = order[start:start + n]
-        low[node], high[node] = tri_low[members].min(axis=0), tri_high[members].max(axis=0)
-        if n <= LEAF_SIZE:
+        lowest[:] = np.inf
+        highest[:] = -np.inf
+        c_low[:] = np.inf
+        c_high[:] = -np.inf
+        for i in range(start, start + n):
+            t = order[i]
+            for axis in range(3):
+                lowest[axis] = min(lowest[axis], tri_low[t, axis])
+                highest[axis] = max(highest[axis], tri_high[t, axis])
+                c_low[axis] = min(c_low[axis], centroid[t, axis])
+                c_high[axis] = max(c_high[axis], centroid[t, axis])
+        low[node] = lowest
+        high[node] = highest
+        if n <= leaf_size:
             continue
-        spread = centroid[members].max(axis=0) - centroid[members].min(axis=0)
-        axis = int(np.argmax(spread))
+        axis = int(np.argmax(c_high - c_low))
         middle = n // 2
-        order[start:start + n] = members[np.argpartition(centroid[members, axis], middle)]
+        keys = np.empty(n)
+        for i in range(n):
+            keys[i] = centroid[order[start + i], axis]
+        members = order[start:start + n][np.argsort(keys, kind="mergesort")]
+        order[start:start + n] = members
         child[node] = nodes
         first[nodes], count[nodes] = start, middle
         first[nodes + 1], count[nodes + 1] = start + middle, n - middle
-        pending += [nodes, nodes + 1]
+        pending[top] = nodes
+        pending[top + 1] = nodes + 1
+        top += 2
         nodes += 2
-    return low[:nodes], high[:nodes], child[:nodes], first[:nodes], count[:nodes], order
+    return nodes
 
 
 def _pseudo_normals(points, triangles):
