@@ -648,20 +648,73 @@ def _settled(residual, tolerance) -> bool:
     return distance_to_go(residual) < tolerance
 
 
-def _direction(gradient, history, h0):
+class _History:
+    """The last ``size`` L-BFGS pairs ``(s, y, 1 / y.s)`` of (f, 3) arrays, in ring buffers
+    (no arrays made per iteration)."""
+
+    def __init__(self, size: int, free: int):
+        self.s = np.zeros((max(size, 1), 3 * free))
+        self.y = np.zeros_like(self.s)
+        self.rho = np.zeros(max(size, 1))
+        self.alpha = np.zeros(max(size, 1))
+        self.size, self.count, self.next = size, 0, 0
+
+    def __len__(self):
+        return self.count
+
+    def clear(self):
+        self.count = 0
+
+    def add(self, s, y, rho):
+        """Keep the pair ``s``, ``y`` (f, 3) (copied), dropping the oldest when full."""
+        if self.size == 0:
+            return
+        self.s[self.next] = s.ravel()
+        self.y[self.next] = y.ravel()
+        self.rho[self.next] = rho
+        self.next = (self.next + 1) % self.size
+        self.count = min(self.count + 1, self.size)
+
+    def order(self) -> np.ndarray:
+        """The slots of the pairs kept, oldest first."""
+        return (self.next - self.count + np.arange(self.count)) % max(self.size, 1)
+
+
+@njit(cache=True)
+def _lbfgs_back(q, s, y, rho, order, alpha):
+    """The first loop of the two-loop recursion on ``q`` (in place), newest pair first."""
+    for t in range(order.shape[0] - 1, -1, -1):
+        k = order[t]
+        a = 0.0
+        for i in range(q.shape[0]):
+            a += s[k, i] * q[i]
+        a *= rho[k]
+        alpha[k] = a
+        for i in range(q.shape[0]):
+            q[i] -= a * y[k, i]
+
+
+@njit(cache=True)
+def _lbfgs_forward(r, s, y, rho, order, alpha):
+    """The second loop of the two-loop recursion on ``r`` (in place), oldest pair first."""
+    for t in range(order.shape[0]):
+        k = order[t]
+        b = 0.0
+        for i in range(r.shape[0]):
+            b += y[k, i] * r[i]
+        c = alpha[k] - rho[k] * b
+        for i in range(r.shape[0]):
+            r[i] += c * s[k, i]
+
+
+def _direction(gradient, history: _History, h0):
     """The L-BFGS step ``-H gradient`` (f, 3) (two-loop recursion, Nocedal and Wright
-    algorithm 7.4) for ``history`` [(s, y, 1 / y.s)] oldest first and the initial inverse
-    Hessian ``h0``."""
+    algorithm 7.4) for the pairs of ``history`` and the initial inverse Hessian ``h0``."""
     q = gradient.copy()
-    alphas = []
-    for s, y, rho in reversed(history):
-        a = rho * np.vdot(s, q)
-        q -= a * y
-        alphas.append(a)
-    r = h0(q)
-    for (s, y, rho), a in zip(history, reversed(alphas)):
-        b = rho * np.vdot(y, r)
-        r += (a - b) * s
+    order = history.order()
+    _lbfgs_back(q.reshape(-1), history.s, history.y, history.rho, order, history.alpha)
+    r = np.ascontiguousarray(h0(q))
+    _lbfgs_forward(r.reshape(-1), history.s, history.y, history.rho, order, history.alpha)
     return -r
 
 
@@ -720,7 +773,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     started = time.perf_counter()
     position = np.ascontiguousarray(x[:, free].T)
     energy, gradient, volume_gradient = energy_of.evaluate(position)
-    history = []
+    history = _History(int(settings.history), len(free))
     done = 0
     converged_loop = False
     stopped_by = "iterations"
@@ -783,9 +836,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         curvature = float(np.vdot(moved, change))
         if settings.history and curvature > 1e-12 * float(np.linalg.norm(moved)
                                                            * np.linalg.norm(change)):
-            history.append((moved, change, 1.0 / curvature))
-            if len(history) > settings.history:
-                history.pop(0)
+            history.add(moved, change, 1.0 / curvature)
         mean_move[done - 1] = np.bincount(free_muscle, np.sqrt(np.einsum(
             "ij,ij->i", moved, moved)), minlength=n_muscles) / sizes
         position, energy, gradient, volume_gradient = (trial, trial_energy, trial_gradient,
