@@ -27,7 +27,7 @@ Two methods (property ``Method``): ``paper relaxation`` (the default,
 :mod:`muscle_mss.core.solver`) runs the paper's explicit iterations; ``quasi-static``
 (:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the same model to
 ``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
-is not the default because on the demo thigh it needs about 1,100 iterations (10 s at N = 20)
+is not the default because on the demo thigh it needs about 1,100 iterations (11 s at N = 20)
 to reach its tolerance at the walking pose and does not reach it in 3,000 at the most flexed
 one (``benchmarks/results/quasi_static.md``; README "Speed" says why).
 The quasi-static table
