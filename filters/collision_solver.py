@@ -58,6 +58,7 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import solver as S
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
+from muscle_mss.core.cage import fibre_polylines
 from muscle_mss.core.errors import MuscleMSSError
 
 from . import array_names as A
@@ -120,6 +121,9 @@ def _muscle_block(name, block, known: dict | None = None):
         data[key] = data[key].reshape(-1)
         if data[key].shape != (n,):
             raise MuscleMSSError(f"{where}: array '{key}' must have one value per particle")
+    # each fibre's particles numbered 0..k-1 (the particle ordering and the volume cage rely
+    # on it; a cage that cannot be built would silently drop the muscle's volume term)
+    fibre_polylines(data[A.FIBRE_ID], data[A.FIBRE_INDEX], where)
     for key in (A.RADIUS, A.MASS):
         if not np.isfinite(data[key]).all() or (data[key] < 0).any():
             raise MuscleMSSError(f"{where}: array '{key}' has a negative, NaN or infinite value")
@@ -451,7 +455,7 @@ class MSSCollisionSolver(MuscleFilter):
         identities stay the same, else while the arrays' contents do."""
         if identities is not None and identities == self._prepared_identity:
             return self._prepared
-        self._prepared_identity = identities
+        self._prepared_identity = None      # until this model is prepared (it may be refused)
         digest = hashlib.sha1()
         for array in (model.offsets, model.springs, model.rest_length, model.stiffness,
                       model.damping, model.fixed, model.mass, model.boundary, model.radius,
@@ -465,4 +469,5 @@ class MSSCollisionSolver(MuscleFilter):
         if key != self._prepared_key:
             self._prepared = S.prepare(model)
             self._prepared_key = key
+        self._prepared_identity = identities
         return self._prepared

@@ -327,3 +327,23 @@ def test_solver_checks_its_model_arrays_once_per_change_and_gives_the_same_parti
         solver.execute([motion_run.update_at(pipeline.pose, 0, times[1]),
                         motion_run.update_at(pipeline.pose, 1, times[1])],
                        [None, None])
+
+
+def test_solver_refusing_a_model_refuses_it_again_rather_than_reuse_the_last_one(
+        small_scene_dir):
+    """A model whose fibres are not numbered 0..k-1 (every fibre_index 0 in one block) is
+    refused naming the block, and refused again when asked once more with the same arrays:
+    the solver never falls back on the arrays or the ordering of the model before it."""
+    from muscle_mss.filters import vtk_arrays as V
+    pipeline = motion_run.build_pipeline(small_scene_dir, {"Iterations": 5})
+    solver, t = pipeline.solver, pipeline.times[1]
+    solved_points(pipeline, t)
+    inputs = [motion_run.update_at(pipeline.pose, port, t) for port in range(2)]
+    name, block = V.blocks(inputs[0])[0]
+    index = block.GetPointData().GetArray("fibre_index")
+    for i in range(index.GetNumberOfTuples()):
+        index.SetValue(i, 0)
+    index.Modified()
+    for _ in range(2):
+        with pytest.raises(MuscleMSSError, match=f"block '{name}': fibre .* fibre_index"):
+            solver.execute(inputs, [None, None])
