@@ -115,6 +115,13 @@ def _first_at_least(keys, value):
     return low
 
 
+@njit(cache=True, inline="always")
+def _cell_span(centre, reach, lower, cell, dims):
+    """The first and last cell (along one axis) within ``reach`` of ``centre``."""
+    return (max(int(np.floor((centre - reach - lower) / cell)), 0),
+            min(int(np.floor((centre + reach - lower) / cell)), dims - 1))
+
+
 @njit(cache=True, parallel=True)
 def _deepest_per_sphere(centres, radii, owner, free, sorted_centres, sorted_radii,
                         sorted_owner, sorted_free, sorted_keys, lower, cell, dims, out):
@@ -126,18 +133,15 @@ def _deepest_per_sphere(centres, radii, owner, free, sorted_centres, sorted_radi
     reach_all = sorted_radii.max() if len(sorted_radii) else 0.0
     for i in prange(len(centres)):
         reach = radii[i] + reach_all
-        low = np.empty(3, dtype=np.int64)
-        high = np.empty(3, dtype=np.int64)
-        for axis in range(3):
-            low[axis] = max(int(np.floor((centres[i, axis] - reach - lower[axis]) / cell)), 0)
-            high[axis] = min(int(np.floor((centres[i, axis] + reach - lower[axis]) / cell)),
-                             dims[axis] - 1)
+        a0, a1 = _cell_span(centres[i, 0], reach, lower[0], cell, dims[0])
+        b0, b1 = _cell_span(centres[i, 1], reach, lower[1], cell, dims[1])
+        c0, c1 = _cell_span(centres[i, 2], reach, lower[2], cell, dims[2])
         best = 0.0
-        for a in range(low[0], high[0] + 1):
-            for b in range(low[1], high[1] + 1):
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
                 row = (a * dims[1] + b) * dims[2]
-                last = row + high[2]
-                s = _first_at_least(sorted_keys, row + low[2])
+                last = row + c1
+                s = _first_at_least(sorted_keys, row + c0)
                 while s < len(sorted_keys) and sorted_keys[s] <= last:
                     if sorted_owner[s] != owner[i] and (free[i] or sorted_free[s]):
                         dx = centres[i, 0] - sorted_centres[s, 0]

@@ -460,7 +460,6 @@ class _Energy:
         self.mm = self.mb = (none, none, np.zeros(0, dtype=np.int64))
         self.lists_built = False
         self.rebuilds = 0
-        self.solid_rebuilds = 0
         self.seconds = np.zeros(3)       # elastic, muscle contacts, bone contacts
 
     def _refresh_lists(self):
@@ -503,7 +502,6 @@ class _Energy:
         self.near = (index, self.solid_points[index], self.solid_radius[index],
                      self.solid_fixed[index], np.zeros(k), np.zeros((k, 2), dtype=np.int64),
                      np.zeros(k))
-        self.solid_rebuilds += 1
 
     def evaluate(self, free_positions):
         """Set the free particles to ``free_positions`` (f, 3) and return ``(energy, gradient

@@ -68,6 +68,7 @@ from .base import MuscleFilter, Port
 from .properties import Property
 
 MODEL = "PosedModel"
+MODEL_BLOCK = "a model block of particles and spring lines"
 BONES = "PosedBones"
 POINT_ARRAYS = (A.REST_POSITION, A.FIBRE_ID, A.FIBRE_INDEX, A.FIXED, A.BOUNDARY, A.RADIUS, A.MASS)
 CELL_ARRAYS = (A.REST_LENGTH, A.STIFFNESS, A.DAMPING)
@@ -89,7 +90,7 @@ def _muscle_block(name, block, known: dict | None = None):
     the same arrays (:func:`~muscle_mss.filters.vtk_arrays.arrays_identity`), whose arrays other
     than the coordinates are then taken as they are (checked then)."""
     where = f"{MODEL} block '{name}'"
-    V.require_polydata(block, where, "a model block of particles and spring lines")
+    V.require_polydata(block, where, MODEL_BLOCK)
     n = block.GetNumberOfPoints()
     if n == 0:
         raise MuscleMSSError(f"{where} has no particles")
@@ -424,8 +425,7 @@ class MSSCollisionSolver(MuscleFilter):
         """``(arrays identity, checked arrays)`` of one model block (:func:`_muscle_block`),
         its arrays other than the coordinates taken from the last update when it had the same
         identity."""
-        V.require_polydata(block, f"{MODEL} block '{name}'",
-                           "a model block of particles and spring lines")
+        V.require_polydata(block, f"{MODEL} block '{name}'", MODEL_BLOCK)
         identity = V.arrays_identity(block)
         known = self._blocks.get(name)
         if known is not None and known[0] == identity:
