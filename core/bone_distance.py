@@ -930,29 +930,5 @@ def reference_push_out(points, triangles, queries, radii) -> np.ndarray:
     return out
 
 
-def fitted_rigid_transform(rest, posed, where="bone") -> np.ndarray:
-    """The rigid 3x4 transform ``M`` with ``posed = rest @ M[:, :3].T + M[:, 3]`` (least squares,
-    Kabsch), for a bone given at rest and posed: (n, 3) mm each, the same vertices in the same
-    order. Raises :class:`MuscleMSSError` naming ``where`` when ``posed`` is not a rigid motion
-    of ``rest`` (off by more than 1e-5 of the bone's size)."""
-    rest = _checked_points(rest, f"{where} (rest)")
-    posed = _checked_points(posed, f"{where} (posed)")
-    if rest.shape != posed.shape or len(rest) < 3:
-        raise MuscleMSSError(f"{where}: the posed bone has {len(posed)} points and the rest bone "
-                             f"{len(rest)}; connect the bones the pose was made from")
-    rest_centre, posed_centre = rest.mean(axis=0), posed.mean(axis=0)
-    u, _, vt = np.linalg.svd((rest - rest_centre).T @ (posed - posed_centre))
-    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T)) or 1.0])
-    rotation = vt.T @ flip @ u.T
-    transform = np.hstack([rotation, (posed_centre - rotation @ rest_centre)[:, None]])
-    off = float(np.abs(rest @ rotation.T + transform[:, 3] - posed).max())
-    size = float(np.ptp(rest, axis=0).max())
-    if off > 1e-5 * max(size, 1.0):
-        raise MuscleMSSError(f"{where}: the posed bone is not a rigid motion of the rest bone "
-                             f"(off by {off:.3g} mm); connect the rest bones (bones.vtm) and the "
-                             "Rigid Pose Transform's PosedBones made from them")
-    return transform
-
-
 NO_SOLIDS = BoneSolids(BoneFieldSet.pack([]), np.zeros((0, 3, 4)), np.zeros(0))
 """No bone as a solid (the kernels' argument when the bones are sphere sets)."""

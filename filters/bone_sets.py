@@ -31,6 +31,7 @@ from muscle_mss.core import field_store
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
+from muscle_mss.core.rigid_fit import rigid_fit
 
 from . import vtk_arrays as V
 
@@ -52,6 +53,7 @@ field_counts = {"sampled": 0, "loaded": 0, "reused": 0, "moved": 0, "remembered"
 _field_cache = OrderedDict()    # key -> list of (points (n, 3), BoneDistanceField)
 _packed = {}                    # the last packed BoneFieldSet and the fields it holds
 _solids = OrderedDict()         # the blocks' VTK identities -> bone_solids' result
+_digests = OrderedDict()        # a cell array's VTK identity -> its triangles' digest
 SOLIDS_ENTRIES = 4              # bone multiblocks remembered by bone_solids
 
 
@@ -61,31 +63,38 @@ def clear_bone_cache():
     _field_cache.clear()
     _packed.clear()
     _solids.clear()
+    _digests.clear()
     for counts in (cache_counts, field_counts):
         for name in counts:
             counts[name] = 0
 
 
-def rigid_fit(source, target):
-    """Least-squares rigid motion taking ``source`` to ``target`` (both (n, 3) mm, same point
-    order): ``(rotation (3, 3), translation (3,), residual mm)`` with ``target ≈ source @ R.T +
-    t`` and ``residual`` the largest point distance left (Kabsch: SVD of the centred
-    cross-covariance, reflection excluded)."""
-    a = source.mean(axis=0)
-    b = target.mean(axis=0)
-    u, _, vt = np.linalg.svd((source - a).T @ (target - b))
-    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    translation = b - a @ rotation.T
-    moved = source @ rotation.T + translation
-    return rotation, translation, float(np.sqrt(((moved - target) ** 2).sum(axis=1).max()))
+def _cache_key(points, triangles, *extra, digest=None) -> str:
+    """The cache key of a bone shape: its triangles' digest (``digest`` when the caller has it,
+    :func:`_block_shape`), point count and ``extra``."""
+    digest = digest or _triangles_digest(triangles)
+    return digest + np.asarray([len(points), *extra], dtype=np.float64).tobytes().hex()
 
 
-def _cache_key(points, triangles, *extra) -> str:
-    digest = hashlib.blake2b(np.ascontiguousarray(triangles, dtype=np.int64).tobytes(),
-                             digest_size=16)
-    digest.update(np.asarray([len(points), *extra], dtype=np.float64).tobytes())
-    return digest.hexdigest()
+def _triangles_digest(triangles) -> str:
+    return hashlib.blake2b(np.ascontiguousarray(triangles, dtype=np.int64).tobytes(),
+                           digest_size=16).hexdigest()
+
+
+def _block_shape(block, where):
+    """``(points (n, 3) mm, triangles (m, 3), triangles' digest)`` of a bone block. The digest
+    (0.6-0.9 ms a demo bone) is remembered for the same cell array unmodified (its VTK object
+    and modification time): the Rigid Pose Transform hands on the rest bones' triangles at
+    every time point."""
+    polys = block.GetPolys()
+    identity = (polys.__this__, polys.GetMTime())
+    triangles = V.triangles_of(block, where)
+    digest = _digests.get(identity)
+    if digest is None:
+        digest = _digests[identity] = _triangles_digest(triangles)
+        while len(_digests) > CACHE_ENTRIES:
+            _digests.popitem(last=False)
+    return V.points_of(block), triangles, digest
 
 
 def _cached(cache, key, points):
@@ -99,9 +108,8 @@ def _cached(cache, key, points):
             continue
         if np.array_equal(rest, points):
             return value, None, None
-        rotation, translation, residual = rigid_fit(rest, points)
-        size = float(np.ptp(points, axis=0).max()) + 1.0
-        if residual <= RIGID_TOLERANCE * size:
+        rotation, translation, residual, size = rigid_fit(rest, points)
+        if residual <= RIGID_TOLERANCE * (size + 1.0):
             return value, rotation, translation
     return None
 
@@ -112,15 +120,17 @@ def _store(cache, key, points, value):
         cache.popitem(last=False)
 
 
-def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", use_cache=True):
+def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", use_cache=True,
+                        digest=None):
     """:func:`bone_spheres` of one bone surface (``points`` (n, 3) mm, ``triangles`` (m, 3)),
     through the rigid-bone cache described in the module docstring (``use_cache=False``: always
-    sample). Returns ``(centres (k, 3) mm, radii (k,) mm)``, arrays the caller may keep."""
+    sample; ``digest``: the triangles' digest, :func:`_block_shape`). Returns ``(centres (k, 3)
+    mm, radii (k,) mm)``, arrays the caller may keep."""
     spacing = DEFAULT_SPACING if spacing is None else spacing
     if not use_cache:
         return bone_spheres(points, triangles, spacing, where=where)
     points = np.ascontiguousarray(points, dtype=np.float64)
-    key = _cache_key(points, triangles, float(spacing))
+    key = _cache_key(points, triangles, float(spacing), digest=digest)
     found = _cached(_cache, key, points)
     if found is not None:
         (centres, radii), rotation, translation = found
@@ -135,7 +145,7 @@ def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", us
     return centres, radii
 
 
-def cached_bone_field(points, triangles, where: str = "bone"):
+def cached_bone_field(points, triangles, where: str = "bone", digest=None):
     """The signed distance field of one bone surface (:func:`muscle_mss.core.bone_distance.
     bone_distance_field`, default spacing) through a rigid-bone cache like the spheres': the
     field of the first surface of this shape, and the (3, 4) transform from that field's frame
@@ -143,7 +153,7 @@ def cached_bone_field(points, triangles, where: str = "bone"):
     (:mod:`muscle_mss.core.field_store`) or sampled and stored there. Returns
     ``(BoneDistanceField, transform)``."""
     points = np.ascontiguousarray(points, dtype=np.float64)
-    key = _cache_key(points, triangles)
+    key = _cache_key(points, triangles, digest=digest)
     found = _cached(_field_cache, key, points)
     if found is not None:
         field, rotation, translation = found
@@ -182,8 +192,8 @@ def bone_solids(bones, where: str = "bones"):
     fields, transforms, names = [], [], []
     for name, block in blocks:
         block_where = f"{where} block '{name}'"
-        field, transform = cached_bone_field(V.points_of(block),
-                                             V.triangles_of(block, block_where), block_where)
+        points, triangles, digest = _block_shape(block, block_where)
+        field, transform = cached_bone_field(points, triangles, block_where, digest)
         fields.append(field)
         transforms.append(transform)
         names.append(name)
@@ -205,8 +215,8 @@ def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
     centres, radii, ids = [np.zeros((0, 3))], [np.zeros(0)], [np.zeros(0, dtype=np.int64)]
     for k, (name, block) in enumerate(V.polydata_blocks(bones, where, "a triangle surface")):
         block_where = f"{where} block '{name}'"
-        c, r = cached_bone_spheres(V.points_of(block), V.triangles_of(block, block_where),
-                                   spacing, block_where, use_cache)
+        points, triangles, digest = _block_shape(block, block_where)
+        c, r = cached_bone_spheres(points, triangles, spacing, block_where, use_cache, digest)
         centres.append(c)
         radii.append(r)
         ids.append(np.full(len(c), k, dtype=np.int64))

@@ -27,14 +27,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from vtkmodules.vtkFiltersCore import vtkPolyDataNormals
 
 from muscle_mss.core.bone_distance import (DEFAULT_SPACING, BoneFieldSet, bone_distance_field,
-                                           fitted_rigid_transform, push_out_of_bones,
-                                           signed_distances)
+                                           push_out_of_bones, signed_distances)
 from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
+from muscle_mss.core.rigid_fit import fitted_rigid_transform
+from muscle_mss.core.surface_normals import point_normals
 
 from . import array_names as A
 from . import vtk_arrays as V
@@ -52,7 +52,8 @@ class MuscleBinding:
 
     ``weights`` (v, m) float64: MVC of the v rest surface vertices w.r.t. the m cage vertices
     (``8 v m`` bytes); ``order``, ``offsets``, ``fibre_ids``: the fibres as from
-    :func:`~muscle_mss.core.cage.fibre_polylines`; ``rest_lengths`` (F,) mm.
+    :func:`~muscle_mss.core.cage.fibre_polylines`; ``rest_lengths`` (F,) mm; ``triangles``
+    (t, 3) int64: the surface's.
     """
 
     surface: object
@@ -65,6 +66,7 @@ class MuscleBinding:
     fibre_ids: np.ndarray
     fibre_grid: np.ndarray | None
     rest_lengths: np.ndarray
+    triangles: np.ndarray
 
 
 class MVCSurfaceDeformer(MuscleFilter):
@@ -284,7 +286,7 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
     grid = None if fibre_grid is None else \
         np.asarray(fibre_grid, dtype=np.int32).reshape(-1, 2)[order[offsets[:-1]]]
     return MuscleBinding(surface, rest_points, rest_positions, cage, weights, order, offsets,
-                         fibre_ids, grid, rest_lengths)
+                         fibre_ids, grid, rest_lengths, np.ascontiguousarray(triangles))
 
 
 def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
@@ -323,10 +325,12 @@ def _keep_out_of_bones(deformed, fields, transforms, outside, push):
     count, deepest, depth = new_in_bones(fields, transforms, deformed, outside)
     after = (count, deepest)
     if push and count:
-        deformed = deformed + push_out_of_bones(fields, deformed, None, transforms,
-                                                active=outside, tolerance=INSIDE_TOLERANCE)
-        # only the vertices that were inside moved; the others stay outside
+        # only the vertices newly inside move (a vertex already out gets exactly 0)
         pushed = depth > 0.0
+        deformed = deformed.copy()
+        deformed[pushed] += push_out_of_bones(fields, deformed[pushed], None, transforms,
+                                              active=outside[pushed],
+                                              tolerance=INSIDE_TOLERANCE)
         after = new_in_bones(fields, transforms, deformed[pushed], outside[pushed])[:2]
     return deformed, {A.NEW_IN_BONE_DEPTH: depth, A.NEW_IN_BONE_VERTICES: count,
                       A.NEW_IN_BONE_DEPTH_MM: deepest, A.NEW_IN_BONE_VERTICES_AFTER: after[0],
@@ -353,7 +357,8 @@ def _deform_muscle(name, block, binding: MuscleBinding, bones=None):
     if bones is not None:
         fields, transforms, outside, push = bones
         deformed, report = _keep_out_of_bones(deformed, fields, transforms, outside[name], push)
-    surface = _with_normals(V.with_points(binding.surface, deformed))
+    surface = V.with_points(binding.surface, deformed)
+    V.set_normals(surface, point_normals(deformed, binding.triangles))
     V.set_point_array(surface, A.DISPLACEMENT, deformed - binding.rest_points)
     for key, value in report.items():
         if key == A.NEW_IN_BONE_DEPTH:
@@ -376,16 +381,3 @@ def _deform_muscle(name, block, binding: MuscleBinding, bones=None):
                        - np.repeat(binding.offsets[:-1], counts)).astype(np.int32))
     V.set_field(polylines, A.MUSCLE_NAME, name)
     return surface, polylines
-
-
-def _with_normals(polydata):
-    """A new surface with point normals of its current shape (same points and triangles)."""
-    normals = vtkPolyDataNormals()
-    normals.SetInputData(polydata)
-    normals.SplittingOff()
-    normals.ConsistencyOff()
-    normals.AutoOrientNormalsOff()
-    normals.ComputePointNormalsOn()
-    normals.ComputeCellNormalsOff()
-    normals.Update()
-    return normals.GetOutput()

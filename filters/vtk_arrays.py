@@ -146,6 +146,12 @@ def set_point_array(dataset, name: str, values) -> None:
     dataset.GetPointData().AddArray(_to_vtk(name, values))
 
 
+def set_normals(dataset, values) -> None:
+    """Set ``values`` (n, 3) as the point normals (the ``Normals`` array, the active normals
+    that shading uses)."""
+    dataset.GetPointData().SetNormals(_to_vtk("Normals", values))
+
+
 def point_data_array(name: str, values):
     """A new VTK array of ``values`` ((n,) or (n, k)) to share among the outputs of several
     updates (:func:`add_point_arrays`): the same array keeps the outputs'

@@ -8,6 +8,7 @@ from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.penetration import max_penetration_pairs, max_penetration_per_object
 from muscle_mss.core.mesh_checks import surface_problems
+from muscle_mss.core.rigid_fit import rigid_fit
 from muscle_mss.filters import bone_sets, check_cache, motion_run
 from muscle_mss.filters.cli import main, timings_note
 
@@ -167,10 +168,26 @@ def test_rest_surface_checked_once_per_content():
 def test_rigid_fit_recovers_a_known_motion():
     points, _ = bone()
     r, t = rotation(11), np.array([1.0, 2.0, 3.0])
-    got_r, got_t, residual = bone_sets.rigid_fit(points, points @ r.T + t)
+    got_r, got_t, residual, size = rigid_fit(points, points @ r.T + t)
     np.testing.assert_allclose(got_r, r, atol=1e-12)
     np.testing.assert_allclose(got_t, t, atol=1e-9)
     assert residual < 1e-9
+    np.testing.assert_allclose(size, np.ptp(points @ r.T + t, axis=0).max())
+    # a reflection is not a rotation: the fit stays a rotation and reports the miss
+    mirrored = points * [-1.0, 1.0, 1.0]
+    got_r, _, residual, _ = rigid_fit(points, mirrored)
+    np.testing.assert_allclose(np.linalg.det(got_r), 1.0)
+    assert residual > 1.0
+    # the same rotation as NumPy's expression of Kabsch (the one this kernel replaced)
+    moved = points @ r.T + t + rng_noise(points.shape)
+    a, b = points.mean(axis=0), moved.mean(axis=0)
+    u, _, vt = np.linalg.svd((points - a).T @ (moved - b))
+    want = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+    np.testing.assert_allclose(rigid_fit(points, moved)[0], want, atol=1e-12)
+
+
+def rng_noise(shape):
+    return np.random.default_rng(5).normal(0.0, 0.05, shape)
 
 
 @pytest.mark.parametrize("seed, cell_radii", [(1, 1.0), (2, 0.3), (3, 2.5)])
