@@ -156,15 +156,15 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     from .bone_sets import bone_solids, bone_sphere_set
     t = p.times[index]
     start = wallclock.perf_counter()
-    particles = _copy(update_at(p.solver, 0, t))
+    particles = _held(update_at(p.solver, 0, t))
     convergence_table = update_at(p.solver, 1, t)
     convergence = V.table_columns(convergence_table)
     converged = int(V.field(convergence_table, A.CONVERGED, 0))
     bones = update_at(p.pose, 1, t)
     solved = wallclock.perf_counter()
-    surfaces = _copy(update_at(p.probe, 0, t))
+    surfaces = _held(update_at(p.probe, 0, t))
     table = V.table_columns(update_at(p.probe, 1, t))
-    fibres = _copy(update_at(p.deformer, 1, t))
+    fibres = _held(update_at(p.deformer, 1, t))
     seconds = wallclock.perf_counter() - start
 
     blocks = dict(V.blocks(particles, "solved model"))
@@ -226,10 +226,12 @@ def _count_or_depth(column, value):
         else float(value)
 
 
-def _copy(data):
-    out = data.NewInstance()
-    out.DeepCopy(data)
-    return out
+def _held(data):
+    """A new multiblock of the blocks of a filter's output ``data``, to keep past the next
+    update: a filter refills its output multiblock at every update but never changes the
+    blocks it made before (each update makes new ones), so holding them is enough (a DeepCopy
+    of the particles was 6 ms a time point at N = 80)."""
+    return V.make_multiblock(V.blocks(data, "output"))
 
 
 def series_file(name: str, index: int) -> str:

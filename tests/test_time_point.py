@@ -286,6 +286,39 @@ def test_every_compressor_reads_back_the_same_series_and_caches_repeat_bitwise(
     assert strip == [{k: v for k, v in r.items() if k != "seconds"} for r in again.rows]
 
 
+def test_a_time_points_result_stays_as_it_was_after_later_time_points(small_scene_dir):
+    """solve_time_point holds the filters' output blocks without copying them: no later update
+    may change a block a filter made before."""
+    from muscle_mss.filters import vtk_arrays as V
+
+    def snapshot(result):
+        return {(series, name): (V.points_of(block).copy(), {
+            k: v.copy() for k, v in V.point_arrays(block).items()})
+            for series, data in zip(motion_run.SERIES, (result.surfaces, result.fibres,
+                                                         result.particles))
+            for name, block in V.blocks(data, series)}
+
+    pipeline = motion_run.build_pipeline(small_scene_dir, {"Iterations": 5})
+    first = motion_run.solve_time_point(pipeline, 1)
+    kept = snapshot(first)
+    later = motion_run.solve_time_point(pipeline, 3)
+    pipeline.solver.Modified()          # and a re-execution at the same time point
+    motion_run.solve_time_point(pipeline, 3)
+    now = snapshot(first)
+    assert now.keys() == kept.keys() and len(kept) == 3 * len(pipeline_names(first))
+    for key, (points, arrays) in kept.items():
+        np.testing.assert_array_equal(now[key][0], points)
+        assert now[key][1].keys() == arrays.keys()
+        for name, values in arrays.items():
+            np.testing.assert_array_equal(now[key][1][name], values)
+    moved = snapshot(later)
+    assert any(not np.array_equal(moved[key][0], kept[key][0]) for key in kept)
+
+
+def pipeline_names(result):
+    return [r["muscle"] for r in result.rows]
+
+
 def solved_points(pipeline, t):
     from muscle_mss.filters import vtk_arrays as V
     out = motion_run.update_at(pipeline.solver, 0, t)
