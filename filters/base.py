@@ -18,6 +18,7 @@ empty outputs); Ctrl-C becomes :class:`~muscle_mss.core.errors.Interrupted`, rai
 from __future__ import annotations
 
 import os
+import weakref
 import traceback
 from dataclasses import dataclass
 
@@ -137,6 +138,19 @@ class MuscleFilter(VTKPythonAlgorithmBase):
             self._request = self._out_info = None
         return 1
 
+    @property
+    def _error(self):
+        """The :class:`MuscleMSSError` of this filter's last update, or None."""
+        return self.__dict__.get("_recorded_error")
+
+    @_error.setter
+    def _error(self, err):
+        self.__dict__["_recorded_error"] = err
+        if err is None:
+            _failing.discard(self)
+        else:
+            _failing.add(self)
+
     def _fail(self, err, outputs):
         """Record ``err`` for :meth:`Update`, empty the outputs and show the message (ParaView's
         output messages; stderr in Python)."""
@@ -194,9 +208,16 @@ def _compile_notice(text: str) -> None:
     vtkOutputWindow.GetInstance().DisplayWarningText(f"Muscle MSS: {text}\n")
 
 
+_failing = weakref.WeakSet()
+"""The muscle-mss filters whose last update failed: while there is none, no pipeline has an
+error to find (walking the upstream pipeline cost about 1.4 ms a filter update in pvpython)."""
+
+
 def pipeline_error(algorithm):
     """The recorded error of the furthest-upstream muscle-mss filter feeding ``algorithm``
     (itself included), or None."""
+    if not _failing:
+        return None
     seen = set()
 
     def visit(alg):
@@ -216,6 +237,8 @@ def pipeline_error(algorithm):
 def upstream_error(algorithm):
     """The recorded error of a muscle-mss filter upstream of ``algorithm`` (not itself), or
     None."""
+    if not _failing:
+        return None
     for port in range(algorithm.GetNumberOfInputPorts()):
         for c in range(algorithm.GetNumberOfInputConnections(port)):
             error = pipeline_error(algorithm.GetInputConnection(port, c).GetProducer())
