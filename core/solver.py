@@ -673,11 +673,28 @@ def _world_box(positions, bone_centres) -> np.ndarray:
     posed particles and the bone spheres grown by its own diagonal on every side. A sphere
     outside it has diverged (a step of the explicit integration too long for the springs):
     the solve stops before the collision structures index a grid or tree with it."""
-    points = np.concatenate([np.asarray(positions, dtype=np.float64).reshape(-1, 3),
-                             np.asarray(bone_centres, dtype=np.float64).reshape(-1, 3)])
-    lower, upper = points.min(axis=0), points.max(axis=0)
+    box = np.array([[np.inf] * 3, [-np.inf] * 3])
+    for points in (positions, bone_centres):
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(points):
+            lower, upper = _box(points)
+            box = np.stack([np.minimum(box[0], lower), np.maximum(box[1], upper)])
+    lower, upper = box if np.isfinite(box).all() else np.zeros((2, 3))
     grow = max(float(np.linalg.norm(upper - lower)), 1.0)
     return np.stack([lower - grow, upper + grow])
+
+
+@njit(cache=True)
+def _box(points):
+    """``(lower (3,), upper (3,))`` mm: the bounding box of ``points`` (n >= 1, 3) (NumPy's
+    ``min(axis=0)`` took 4 ms on the 66,560 particles of the demo thigh at N = 80)."""
+    lower = points[0].copy()
+    upper = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for k in range(3):
+            lower[k] = min(lower[k], points[i, k])
+            upper[k] = max(upper[k], points[i, k])
+    return lower, upper
 
 
 # The Gershgorin bounds of stable_time_step overestimate the stiffest mode (a checkerboard
@@ -766,7 +783,10 @@ def _divergence_limits(positions, offsets, reach) -> np.ndarray:
     limits = np.empty(len(offsets) - 1)
     for m in range(len(limits)):
         part = positions[offsets[m]:offsets[m + 1]]
-        size = float(np.linalg.norm(part.max(axis=0) - part.min(axis=0))) if len(part) else 0.0
+        size = 0.0
+        if len(part):
+            lower, upper = _box(part)
+            size = float(np.linalg.norm(upper - lower))
         limits[m] = size + reach + 1.0
     return limits
 
