@@ -52,7 +52,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .errors import MuscleMSSError
+from .errors import MuscleMSSError, checked_points
 from .mesh_checks import checked_surface, surface_problems
 
 BRICK = 8
@@ -725,16 +725,6 @@ def _checked_transforms(fields: BoneFieldSet, transforms) -> np.ndarray:
     return transforms
 
 
-def _checked_points(points, what="points") -> np.ndarray:
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise MuscleMSSError(f"{what} must be an (n, 3) array; got shape {points.shape}")
-    if not np.isfinite(points).all():
-        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
-        raise MuscleMSSError(f"{what}: point {bad} has a NaN or infinite coordinate")
-    return points
-
-
 def signed_distances(fields: BoneFieldSet, points, transforms=None):
     """Signed distance of ``points`` (n, 3) mm to every posed bone, and its gradient.
 
@@ -742,7 +732,7 @@ def signed_distances(fields: BoneFieldSet, points, transforms=None):
     M[:, 3]`` (None: the rest pose). Returns ``distance`` (n, b) float64 mm (negative inside)
     and ``gradient`` (n, b, 3) float64, unit length up to interpolation, in posed coordinates.
     """
-    points = _checked_points(points)
+    points = checked_points(points)
     transforms = _checked_transforms(fields, transforms)
     distance = np.empty((len(points), len(fields)))
     gradient = np.empty((len(points), len(fields), 3))
@@ -849,7 +839,7 @@ def push_out_of_bones(fields: BoneFieldSet, points, radii=None, transforms=None,
     far side from where it came in: callers that move points into bones by small steps (a
     solver iteration) push them every step.
     """
-    points = _checked_points(points)
+    points = checked_points(points)
     n, b = len(points), len(fields)
     radii = np.zeros(n) if radii is None else \
         np.ascontiguousarray(np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)))

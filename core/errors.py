@@ -5,6 +5,8 @@ wrong and where (file, block, row, fibre) and the rule it breaks, so that a user
 """
 import os
 
+import numpy as np
+
 
 class MuscleMSSError(ValueError):
     """Bad input or an impossible request, described for the user.
@@ -32,6 +34,18 @@ def check_memory(what: str, nbytes: float, advice: str) -> None:
         raise MuscleMSSError(f"{what} would need {nbytes / 1024 ** 3:.3g} GiB, more than the "
                              f"{limit / 1024 ** 3:.3g} GiB (a quarter of this machine's memory) "
                              f"one array may take; {advice}")
+
+
+def checked_points(points, what="points") -> np.ndarray:
+    """``points`` as a contiguous (n, 3) float64 array; raise :class:`MuscleMSSError` naming
+    ``what`` when they are not (n, 3) or a coordinate is NaN or infinite."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MuscleMSSError(f"{what} must be an (n, 3) array; got shape {points.shape}")
+    if not np.isfinite(points).all():
+        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+        raise MuscleMSSError(f"{what}: point {bad} has a NaN or infinite coordinate")
+    return points
 
 
 class Interrupted(KeyboardInterrupt):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .errors import MuscleMSSError
+from .errors import MuscleMSSError, checked_points
 
 RIGID_MOTION_TOLERANCE = 1e-5
 """A posed bone is a rigid motion of its rest bone when the fit leaves no point farther than
@@ -75,23 +75,13 @@ def rigid_fit(source, target):
     return rotation, translation, float(residual), float(size)
 
 
-def _checked_points(points, what) -> np.ndarray:
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise MuscleMSSError(f"{what} must be an (n, 3) array; got shape {points.shape}")
-    if not np.isfinite(points).all():
-        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
-        raise MuscleMSSError(f"{what}: point {bad} has a NaN or infinite coordinate")
-    return points
-
-
 def fitted_rigid_transform(rest, posed, where="bone") -> np.ndarray:
     """The rigid 3x4 transform ``M`` with ``posed = rest @ M[:, :3].T + M[:, 3]``, for a bone
     given at rest and posed: (n, 3) mm each, the same vertices in the same order. Raises
     :class:`MuscleMSSError` naming ``where`` when ``posed`` is not a rigid motion of ``rest``
     (a point off by more than :data:`RIGID_MOTION_TOLERANCE` of the bone's size)."""
-    rest = _checked_points(rest, f"{where} (rest)")
-    posed = _checked_points(posed, f"{where} (posed)")
+    rest = checked_points(rest, f"{where} (rest)")
+    posed = checked_points(posed, f"{where} (posed)")
     if rest.shape != posed.shape or len(rest) < 3:
         raise MuscleMSSError(f"{where}: the posed bone has {len(posed)} points and the rest bone "
                              f"{len(rest)}; connect the bones the pose was made from")
