@@ -114,6 +114,31 @@ def test_bone_solids_remember_unmodified_blocks_and_refit_a_moved_one():
     np.testing.assert_allclose(moved[0], np.hstack([r, t[:, None]]), atol=1e-9)
 
 
+def test_a_bones_triangle_digest_is_remembered_until_its_cells_change():
+    from muscle_mss.filters import vtk_arrays as V
+    points, triangles = bone()
+    block = V.make_polydata(points, triangles)
+    _, _, first = bone_sets._block_shape(block, "femur")
+    assert first == bone_sets._triangles_digest(triangles)
+    # a new, unmodified posed copy (the pose filter's: the same cell array) is not hashed again
+    posed = V.with_points(block, points + 1.0)
+    calls = []
+    original = bone_sets._triangles_digest
+    bone_sets._triangles_digest = lambda t: calls.append(1) or original(t)
+    try:
+        assert bone_sets._block_shape(posed, "femur")[2] == first and not calls
+        # triangles reversed in place, marked modified: a new digest, hashed afresh
+        connectivity = V._numpy_view(block.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+        connectivity[:] = connectivity[:, ::-1].copy()
+        block.GetPolys().Modified()
+        _, reversed_triangles, second = bone_sets._block_shape(block, "femur")
+    finally:
+        bone_sets._triangles_digest = original
+    assert calls and second != first
+    assert second == bone_sets._triangles_digest(np.asarray(triangles)[:, ::-1])
+    np.testing.assert_array_equal(reversed_triangles, np.asarray(triangles)[:, ::-1])
+
+
 def test_fields_are_stored_on_disk_and_read_back_bitwise_by_a_later_run(tmp_path, monkeypatch):
     from muscle_mss.core import field_store
     monkeypatch.setenv(field_store.ENVIRONMENT, str(tmp_path))
