@@ -673,13 +673,10 @@ def _world_box(positions, bone_centres) -> np.ndarray:
     posed particles and the bone spheres grown by its own diagonal on every side. A sphere
     outside it has diverged (a step of the explicit integration too long for the springs):
     the solve stops before the collision structures index a grid or tree with it."""
-    box = np.array([[np.inf] * 3, [-np.inf] * 3])
-    for points in (positions, bone_centres):
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if len(points):
-            lower, upper = _box(points)
-            box = np.stack([np.minimum(box[0], lower), np.maximum(box[1], upper)])
-    lower, upper = box if np.isfinite(box).all() else np.zeros((2, 3))
+    boxes = [_box(points) for points in (np.asarray(p, dtype=np.float64).reshape(-1, 3)
+                                         for p in (positions, bone_centres)) if len(points)]
+    lower = np.min([low for low, _ in boxes], axis=0) if boxes else np.zeros(3)
+    upper = np.max([high for _, high in boxes], axis=0) if boxes else np.zeros(3)
     grow = max(float(np.linalg.norm(upper - lower)), 1.0)
     return np.stack([lower - grow, upper + grow])
 

@@ -58,6 +58,8 @@ def _numpy_view(array) -> np.ndarray:
         return np.empty((0, components) if components > 1 else (0,), dtype=dtype)
     view = np.frombuffer(array, dtype=dtype)
     return view.reshape(tuples, components) if components > 1 else view
+
+
 _VTK_TYPES = {}     # NumPy dtype -> VTK data type, as numpy_to_vtk chooses it
 
 
