@@ -307,8 +307,8 @@ def write_time_point(result: TimePointResult, out: str, series_names=SERIES,
         raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    write_csv(os.path.join(out, "convergence", f"convergence_{result.index:04d}.csv"),
-              list(result.convergence), zip(*result.convergence.values()))
+    write_columns(os.path.join(out, "convergence", f"convergence_{result.index:04d}.csv"),
+                  result.convergence)
     result.timings["write"] = wallclock.perf_counter() - start
 
 
@@ -379,6 +379,26 @@ def write_csv(path, header, rows) -> None:
         for row in rows:
             out.writerow([_csv_value(v) for v in row])
     _write_atomically(path, lines)
+
+
+def write_columns(path, columns: dict) -> None:
+    """Write a table of ``columns`` (name → NumPy array or list) as :func:`write_csv` would
+    write its rows (the same bytes), column by column: a time point's convergence table (500 x
+    17 values) took 11 ms through ``csv.writer``, most of it per-value Python calls."""
+    texts = [[str(name) for name in columns]]
+    for values in columns.values():
+        if isinstance(values, np.ndarray) and values.dtype.kind == "f":
+            texts.append(list(map(repr, values.tolist())))     # float repr, as _csv_value
+        elif isinstance(values, np.ndarray) and values.dtype.kind in "iub":
+            texts.append(list(map(str, values.tolist())))           # ints; bools as True
+        else:
+            texts.append(None)
+    if any(t is None for t in texts[1:]):        # text or mixed columns: the csv module
+        write_csv(path, list(columns), zip(*columns.values()))
+        return
+    header, *cells = texts
+    rows = [",".join(header)] + [",".join(row) for row in zip(*cells)]
+    _write_atomically(path, lambda f: f.write("\r\n".join(rows) + "\r\n"))
 
 
 def _csv_value(v):

@@ -6,9 +6,10 @@ vertex are computed once. They are kept while the rest inputs (RestSurfaces, Res
 unchanged: a new time point changes only SolvedModel, and each deformed vertex is then one
 weighted sum of the current cage positions.
 
-Memory: the weights are dense float64, 8 x (surface vertices) x (cage vertices) bytes per
-muscle. The full demo at N = 80 (about 1100 surface vertices, 2312 cage vertices per muscle)
-keeps about 20 MB per muscle, 260 MB for its 13 muscles.
+Memory: the weights are computed in float64 one muscle at a time (8 x surface vertices x cage
+vertices bytes) and kept dense as float32, applied to the cage's displacement from rest (see
+:class:`MuscleBinding`). The full demo at N = 80 (about 1100 surface vertices, 2312 cage
+vertices per muscle) keeps about 10 MB per muscle, 130 MB for its 13 muscles.
 
 Surfaces kept out of bones (issue 12). The cage follows the collision spheres, and between
 them the surface can sink into a bone. With the optional RestBones and PosedBones inputs, each
@@ -50,8 +51,10 @@ _WEIGHTS_PROGRESS = 0.9
 class MuscleBinding:
     """What one muscle's deformation needs from the rest inputs, computed once.
 
-    ``weights`` (v, m) float64: MVC of the v rest surface vertices w.r.t. the m cage vertices
-    (``8 v m`` bytes); ``order``, ``offsets``, ``fibre_ids``: the fibres as from
+    ``weights`` (v, m) float32: MVC of the v rest surface vertices w.r.t. the m cage vertices
+    (``4 v m`` bytes), applied to the cage's displacement from ``rest_cage`` (m, 3) mm (exact at
+    rest; rounding about 1e-7 of the displacement, where float64 weights would double the
+    memory read every time point: 5 of the deformer's 30 ms at N = 20); ``order``, ``offsets``, ``fibre_ids``: the fibres as from
     :func:`~muscle_mss.core.cage.fibre_polylines`; ``rest_lengths`` (F,) mm; ``triangles``
     (t, 3) int64: the surface's.
     """
@@ -60,6 +63,7 @@ class MuscleBinding:
     rest_points: np.ndarray
     rest_positions: np.ndarray
     cage: Cage
+    rest_cage: np.ndarray
     weights: np.ndarray
     order: np.ndarray
     offsets: np.ndarray
@@ -275,8 +279,9 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
         bad = int(np.flatnonzero(~np.isfinite(rest_points).all(axis=1))[0])
         raise MuscleMSSError(f"{surface_where}: point {bad} has a NaN or infinite coordinate; "
                              "every coordinate must be finite")
-    weights = mean_value_coordinates(rest_positions[cage.vertices], cage.triangles, rest_points,
-                                     where=f"{where}: cage")
+    rest_cage = np.ascontiguousarray(rest_positions[cage.vertices])
+    weights = mean_value_coordinates(rest_cage, cage.triangles, rest_points,
+                                     where=f"{where}: cage").astype(np.float32)
     order, offsets, fibre_ids = fibre_polylines(fibre_id, fibre_index, where)
     rest_lengths = polyline_lengths(rest_positions, order, offsets)
     short = np.flatnonzero(rest_lengths <= 0.0)
@@ -285,8 +290,8 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
                              "a fibre needs at least two distinct particles")
     grid = None if fibre_grid is None else \
         np.asarray(fibre_grid, dtype=np.int32).reshape(-1, 2)[order[offsets[:-1]]]
-    return MuscleBinding(surface, rest_points, rest_positions, cage, weights, order, offsets,
-                         fibre_ids, grid, rest_lengths, np.ascontiguousarray(triangles))
+    return MuscleBinding(surface, rest_points, rest_positions, cage, rest_cage, weights, order,
+                         offsets, fibre_ids, grid, rest_lengths, np.ascontiguousarray(triangles))
 
 
 def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
@@ -352,7 +357,8 @@ def _deform_muscle(name, block, binding: MuscleBinding, bones=None):
                 not np.allclose(rest, binding.rest_positions, rtol=0.0, atol=scale):
             raise MuscleMSSError(f"{where}: its rest_position differs from RestModel's; the "
                                  "solved model must come from the same Spring Builder output")
-    deformed = mvc_deform(binding.weights, current[binding.cage.vertices])
+    deformed = binding.rest_points + mvc_deform(
+        binding.weights, current[binding.cage.vertices] - binding.rest_cage)
     report = {}
     if bones is not None:
         fields, transforms, outside, push = bones

@@ -245,6 +245,19 @@ def test_penetration_grid_equals_the_reference_bitwise(seed, cell_radii, monkeyp
         assert (want.max() > 0) == (size > 0)
 
 
+def test_convergence_table_is_written_column_by_column_as_the_csv_module_writes_it(tmp_path):
+    rng = np.random.default_rng(3)
+    columns = {"iteration": np.arange(40), "seconds": rng.random(40) * np.logspace(-9, 5, 40),
+               "collided": np.arange(40, dtype=np.uint8) % 2, "flag": np.arange(40) % 3 == 0,
+               "odd": np.array([1e-5, 1e16, -0.0, 1.5e300, np.inf, np.nan, 0.1, 2.0] * 5)}
+    for name, extra in (("numbers", {}), ("with text", {"method": ["paper"] * 40})):
+        table = {**columns, **extra}
+        motion_run.write_columns(tmp_path / f"{name}.csv", table)
+        motion_run.write_csv(tmp_path / f"{name} ref.csv", list(table), zip(*table.values()))
+        assert (tmp_path / f"{name}.csv").read_bytes() == \
+            (tmp_path / f"{name} ref.csv").read_bytes()
+
+
 def test_timings_note_lists_the_measured_parts():
     assert timings_note({"solve": 1.234, "surface": 0.1, "statistics": 0.01, "write": 0.05}) \
         == "(solve 1.23 + surface 0.10 + write 0.05 s)"
