@@ -33,6 +33,7 @@ from muscle_mss.core import solver as S
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.filters import bone_sets, motion_run
 from muscle_mss.filters.motion_run import build_pipeline, update_at
+from muscle_mss.filters.mvc_surface_deformer import weight_counts
 from muscle_mss.filters.scene_io import write_scene
 
 from bench_solver import cpu_model
@@ -152,11 +153,15 @@ def main(argv=None):
             indices = spread(len(pipeline.times), args.points)
             out = os.path.join(folder, f"out{n}")
             runs = []
+            loaded = (bone_sets.field_counts["loaded"], weight_counts["loaded"])
             for index in indices:
                 seconds, result = time_point_parts(pipeline, index, out, clock)
                 if not runs:
-                    fields = ("bone fields from disk" if bone_sets.field_counts["loaded"]
-                              else "bone fields sampled")
+                    fields = ", ".join((
+                        "bone fields " + ("from disk" if bone_sets.field_counts["loaded"]
+                                          > loaded[0] else "sampled"),
+                        "MVC weights " + ("from disk" if weight_counts["loaded"] > loaded[1]
+                                          else "computed")))
                 runs.append(seconds)
                 print(f"N={n} t={pipeline.times[index]:.3f}: "
                       + ", ".join(f"{k} {v:.3f}" for k, v in seconds.items())
@@ -173,9 +178,10 @@ def main(argv=None):
         "machine is shared, so the seconds are pessimistic and vary between runs.", "",
         "Full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations), the CLI's "
         "pipeline; `python benchmarks/bench_time_point.py`. Steady state: mean of the time "
-        "points after the first. The first time point reads the bones' distance fields from the "
-        "disk store of an earlier run when it has them (core/field_store.py), else samples "
-        "them; its row says which. 'around' = all but the iterations.", "",
+        "points after the first. The first time point reads the bones' distance fields and the "
+        "muscles' MVC weights from the disk stores of an earlier run when they have them "
+        "(core/field_store.py, mvc_surface_deformer.WEIGHTS_STORE), else computes them; its "
+        "row says which. 'around' = all but the iterations.", "",
         "| N | time point | " + " | ".join(f"{p} s" for p in PARTS) + " | around s | total s "
         "| load |",
         "|---|---|" + "---|" * (len(PARTS) + 3)]

@@ -27,11 +27,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import os
+
 import numpy as np
 
+from muscle_mss.core import mvc
 from muscle_mss.core.bone_distance import (DEFAULT_SPACING, BoneFieldSet, bone_distance_field,
                                            push_out_of_bones, signed_distances)
 from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
+from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
 from muscle_mss.core.rigid_fit import fitted_rigid_transform
@@ -45,6 +49,33 @@ from .properties import Property
 
 # Share of the progress bar taken by the weights when they are (re)computed.
 _WEIGHTS_PROGRESS = 0.9
+
+#: Each muscle's weights kept on disk between runs and sessions, keyed by its rest cage and rest
+#: surface bitwise (``MUSCLE_MSS_MVC_WEIGHTS``: another folder, or ``off``): computing them is
+#: most of the deformer's first time point (0.44 s for the demo thigh at N = 20, 1.45 s at
+#: N = 80), reading them back a few milliseconds. At N = 80 a demo muscle's file is 10 MB.
+WEIGHTS_STORE = DiskStore("mvc-weights", "MUSCLE_MSS_MVC_WEIGHTS",
+                          (os.path.abspath(mvc.__file__),), max_files=128)
+#: How each muscle's weights were obtained, over this process: "computed" or "loaded" (read from
+#: :data:`WEIGHTS_STORE`).
+weight_counts = {"computed": 0, "loaded": 0}
+
+
+def stored_weights(cage_points, cage_triangles, points, where) -> np.ndarray:
+    """The float32 mean value coordinates (v, m) of ``points`` (v, 3) w.r.t. the cage, read from
+    :data:`WEIGHTS_STORE` when an earlier run computed them, else computed and stored."""
+    key = array_digest(cage_points, cage_triangles, points)
+    stored = WEIGHTS_STORE.load(key, ("weights",))
+    if stored is not None:
+        weights = stored["weights"]
+        if weights.dtype == np.float32 and weights.shape == (len(points), len(cage_points)):
+            weight_counts["loaded"] += 1
+            return weights
+    weights = mean_value_coordinates(cage_points, cage_triangles, points,
+                                     where=where).astype(np.float32)
+    weight_counts["computed"] += 1
+    WEIGHTS_STORE.save(key, {"weights": weights})
+    return weights
 
 
 @dataclass(frozen=True)
@@ -280,8 +311,7 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
         raise MuscleMSSError(f"{surface_where}: point {bad} has a NaN or infinite coordinate; "
                              "every coordinate must be finite")
     rest_cage = np.ascontiguousarray(rest_positions[cage.vertices])
-    weights = mean_value_coordinates(rest_cage, cage.triangles, rest_points,
-                                     where=f"{where}: cage").astype(np.float32)
+    weights = stored_weights(rest_cage, cage.triangles, rest_points, f"{where}: cage")
     order, offsets, fibre_ids = fibre_polylines(fibre_id, fibre_index, where)
     rest_lengths = polyline_lengths(rest_positions, order, offsets)
     short = np.flatnonzero(rest_lengths <= 0.0)

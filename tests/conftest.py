@@ -1,13 +1,15 @@
 """Shared fixtures: the small demo scene in memory and on disk (the tests' default data).
 
-The bones' distance fields are not read from or written to the user's disk store
-(:mod:`muscle_mss.core.field_store`) during the tests, nor by the ParaView processes they start:
-every run samples them, so the sampling counts the tests assert are exact."""
+The bones' distance fields and the muscles' mean value coordinates are not read from or written
+to the user's disk stores (:mod:`muscle_mss.core.field_store`,
+``muscle_mss.filters.mvc_surface_deformer.WEIGHTS_STORE``) during the tests, nor by the ParaView
+processes they start: every run computes them, so the counts the tests assert are exact."""
 import os
 
 import pytest
 
 os.environ["MUSCLE_MSS_BONE_FIELDS"] = "off"
+os.environ["MUSCLE_MSS_MVC_WEIGHTS"] = "off"
 
 
 @pytest.fixture(scope="session")

@@ -10,6 +10,7 @@ from vtkmodules.vtkFiltersCore import vtkMassProperties
 from muscle_mss.core.cage import LATTICE
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.filters import MVCSurfaceDeformer, VolumeErrorProbe
+from muscle_mss.filters import mvc_surface_deformer as D
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 
@@ -200,6 +201,40 @@ class _MovingModel(VTKPythonAlgorithmBase):
         out = vtkMultiBlockDataSet.GetData(outInfo)
         out.ShallowCopy(solved)
         return 1
+
+
+def test_weights_are_stored_on_disk_and_read_back_bitwise_by_a_later_run(tmp_path,
+                                                                         monkeypatch):
+    monkeypatch.setenv(D.WEIGHTS_STORE.environment, str(tmp_path))
+    model, surfaces = scene()
+    solved = moved(model, lambda p: p * [1.0, 1.05, 1.1] + [0.0, 2.0, 0.0])
+
+    def counted(surfaces_now):
+        before = dict(D.weight_counts)
+        f = deform(solved, surfaces_now, model)       # a new deformer, as a later run makes
+        return f, {k: D.weight_counts[k] - before[k] for k in before}
+
+    first, counts = counted(surfaces)
+    assert counts == {"computed": 2, "loaded": 0}
+    assert len(list(tmp_path.glob("*.npz"))) == 2
+    second, counts = counted(surfaces)
+    assert counts == {"computed": 0, "loaded": 2}
+    for name in ("vastus", "gracilis"):
+        a, b = first.bindings(surfaces, model)[name], second.bindings(surfaces, model)[name]
+        assert a.weights.dtype == np.float32
+        np.testing.assert_array_equal(a.weights, b.weights)
+    for (_, a), (_, b) in zip(V.blocks(first.GetOutputDataObject(0)),
+                              V.blocks(second.GetOutputDataObject(0))):
+        np.testing.assert_array_equal(V.points_of(a), V.points_of(b))
+
+    # a moved rest surface vertex: that muscle's weights are computed afresh, the other's read
+    changed = V.make_multiblock([(name, V.with_points(block, V.points_of(block) + (
+        [0.0, 0.0, 0.01] if name == "gracilis" else 0.0))) for name, block in V.blocks(surfaces)])
+    _, counts = counted(changed)
+    assert counts == {"computed": 1, "loaded": 1}
+    monkeypatch.setenv(D.WEIGHTS_STORE.environment, "off")
+    _, counts = counted(surfaces)
+    assert counts == {"computed": 2, "loaded": 0}
 
 
 def test_weights_are_kept_across_time_points():
