@@ -25,8 +25,7 @@ from collections import OrderedDict
 import numpy as np
 
 from muscle_mss.core.bone_distance import (BoneFieldSet, bone_distance_field,
-                                           exact_signed_distance, signed_distances,
-                                           surface_digest)
+                                           inside_surface, signed_distances, surface_digest)
 from muscle_mss.core import field_store
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
@@ -271,6 +270,7 @@ def clear_of_bones(centres, radii, bones, where: str = "bones"):
         field, transform = cached_bone_field(vertices, triangles, block_where)
         distance = signed_distances(BoneFieldSet.pack([field]), centres, transform[None])[0]
         radii = np.minimum(radii, np.maximum(distance[:, 0], 0.0) * (1.0 - SHRINK_MARGIN))
-        inside |= exact_signed_distance(vertices, triangles, centres, where=block_where) < 0.0
+        inside |= inside_surface(vertices, triangles, centres, distance[:, 0],
+                                 field.error_bound, where=block_where)
     radii[inside] = 0.0
     return radii, inside

@@ -4,7 +4,7 @@ import pytest
 
 from muscle_mss.core.bone_distance import (BRICK, COARSE, BoneFieldSet, bone_distance_field,
                                            bone_field_set, exact_signed_distance,
-                                           push_out_of_bones, reference_push_out,
+                                           inside_surface, push_out_of_bones, reference_push_out,
                                            reference_signed_distance, signed_distances)
 from muscle_mss.core.errors import MuscleMSSError
 
@@ -132,6 +132,31 @@ def test_field_is_sparse_and_the_far_field_is_an_upper_bound():
     assert d[0, 0] >= 170.0 - 1e-6 and d[0, 0] <= 171.0
     np.testing.assert_allclose(g[0, 0], [1, 0, 0], atol=1e-12)
     assert BRICK % COARSE == 0
+
+
+@pytest.mark.parametrize("mesh", ["box", "sphere"])
+def test_the_fields_error_bound_holds_and_inside_is_measured_only_near_the_surface(mesh,
+                                                                                 monkeypatch):
+    points, triangles = BOX if mesh == "box" else sphere_mesh(12.0, levels=3)
+    field = bone_distance_field(points, triangles, spacing=1.0, band=2.0)
+    rng = np.random.default_rng(7)
+    queries = np.concatenate([rng.uniform(-60, 60, (2000, 3)),        # far, near, in and out
+                              points * rng.uniform(0.9, 1.1, (len(points), 1))])
+    exact = exact_signed_distance(points, triangles, queries)
+    sampled = signed_distances(BoneFieldSet.pack([field]), queries)[0][:, 0]
+    upper = field.origin + field.dims * BRICK * field.spacing
+    in_box = ((queries >= field.origin) & (queries <= upper)).all(axis=1)
+    assert 0 < in_box.sum() < len(queries)
+    assert np.abs(sampled - exact)[in_box].max() <= field.error_bound
+    assert (sampled[~in_box] >= exact[~in_box] - 1e-9).all() and (exact[~in_box] > 0).all()
+    measured = []
+    import muscle_mss.core.bone_distance as B
+    real = B.exact_signed_distance
+    monkeypatch.setattr(B, "exact_signed_distance",
+                        lambda p, t, q, where="": measured.append(len(q)) or real(p, t, q, where))
+    inside = inside_surface(points, triangles, queries, sampled, field.error_bound)
+    np.testing.assert_array_equal(inside, exact < 0.0)
+    assert 0 < inside.sum() and 0 < measured[0] < len(queries) / 2
 
 
 def test_posed_field_is_the_rest_field_moved_rigidly():
