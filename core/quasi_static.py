@@ -94,7 +94,11 @@ BACKTRACKS = 40                 # line search halvings before the solve gives up
 # Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
 # fraction of the energy is rounding, not an increase (the last steps of a tight solve).
 ENERGY_ROUNDING = 1e-13
-RATE_WINDOW = 10                # iterations over which the residual's decay is measured
+# Iterations over which the residual's decay is measured. With 10, the walking pose of the full
+# demo thigh (N = 20) stopped as converged after 1,292 iterations 0.020 / 1.14 mm (mean / max)
+# from a solve to 1e-5 mm: the last ten steps shrank faster than the slow bending modes behind
+# them. With 30 it stops after 1,945 iterations 0.0035 / 0.083 mm from it (60: the same).
+RATE_WINDOW = 30
 REST_STEP = 1e-12               # mm: a residual below it is rest (rounding of mm coordinates)
 SKIN_FRACTION = 1.0             # contact list skin, times the mean muscle sphere radius
 

@@ -384,3 +384,9 @@ def test_distance_to_go_is_the_geometric_tail_of_the_residual():
     assert Q.distance_to_go(np.ones(5)) == np.inf
     assert Q.distance_to_go(np.array([1.0])) == np.inf
     assert Q.distance_to_go(np.array([1.0, 0.0])) == 0.0
+    # a slow decay ending in a quick dip of ten steps (the walking pose of the full demo thigh
+    # stopped so 1.1 mm from the minimum when the rate came from the last ten iterations):
+    # the rate of the last RATE_WINDOW iterations keeps the slow decay in the estimate
+    dip = np.concatenate([0.999 ** np.arange(100), 0.999 ** 99 * 0.5 ** np.arange(1, 11)])
+    assert Q.RATE_WINDOW >= 30
+    assert Q.distance_to_go(dip) > 3.0 * dip[-1]
