@@ -25,9 +25,8 @@ inside when deeper than :data:`INSIDE_TOLERANCE`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -85,7 +84,8 @@ class MuscleBinding:
     ``weights`` (v, m) float32: MVC of the v rest surface vertices w.r.t. the m cage vertices
     (``4 v m`` bytes), applied to the cage's displacement from ``rest_cage`` (m, 3) mm (exact at
     rest; rounding about 1e-7 of the displacement, where float64 weights would double the
-    memory read every time point: 5 of the deformer's 30 ms at N = 20); ``order``, ``offsets``, ``fibre_ids``: the fibres as from
+    memory read every time point: 5 of the deformer's 30 ms at N = 20); ``order``,
+    ``offsets``, ``fibre_ids``: the fibres as from
     :func:`~muscle_mss.core.cage.fibre_polylines`; ``rest_lengths`` (F,) mm; ``triangles``
     (t, 3) int64: the surface's.
     """
