@@ -43,7 +43,6 @@ Numba loop, ``_push_rest`` / ``_sample`` take a bone index, a rest-frame point a
 """
 from __future__ import annotations
 
-import hashlib
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -52,6 +51,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from .disk_store import array_digest
 from .errors import MuscleMSSError, checked_points
 from .mesh_checks import checked_surface, surface_problems
 
@@ -471,11 +471,9 @@ def _pseudo_normals(points, triangles):
 
 def surface_digest(points, triangles) -> str:
     """A digest of a triangle surface, bitwise: its points (n, 3) float64 and triangles (m, 3)
-    int64."""
-    digest = hashlib.blake2b(np.ascontiguousarray(triangles, dtype=np.int64).tobytes(),
-                             digest_size=20)
-    digest.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
-    return digest.hexdigest()
+    int64 (:func:`~muscle_mss.core.disk_store.array_digest`)."""
+    return array_digest(np.asarray(triangles, dtype=np.int64),
+                        np.asarray(points, dtype=np.float64))
 
 
 # The last surfaces prepared for exact distances (digest -> _Surface): the Spring Builder and
