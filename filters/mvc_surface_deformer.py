@@ -86,8 +86,11 @@ class MuscleBinding:
     rest; rounding about 1e-7 of the displacement, where float64 weights would double the
     memory read every time point: 5 of the deformer's 30 ms at N = 20); ``order``,
     ``offsets``, ``fibre_ids``: the fibres as from
-    :func:`~muscle_mss.core.cage.fibre_polylines`; ``rest_lengths`` (F,) mm; ``triangles``
-    (t, 3) int64: the surface's.
+    :func:`~muscle_mss.core.cage.fibre_polylines`; ``fibre_grid``: each fibre's grid cell, a
+    VTK cell array shared by every time point's fibres (None when the model has none);
+    ``rest_lengths`` (F,) mm; ``triangles`` (t, 3) int64: the surface's; ``fibres``: the fibre
+    polylines at rest with what does not change over time (cells, fibre_id, fibre_index,
+    muscle_name), which each time point copies shallowly and moves.
     """
 
     surface: object
@@ -99,9 +102,10 @@ class MuscleBinding:
     order: np.ndarray
     offsets: np.ndarray
     fibre_ids: np.ndarray
-    fibre_grid: np.ndarray | None
+    fibre_grid: object
     rest_lengths: np.ndarray
     triangles: np.ndarray
+    fibres: object
 
 
 class MVCSurfaceDeformer(MuscleFilter):
@@ -269,12 +273,21 @@ class MVCSurfaceDeformer(MuscleFilter):
             if name not in names:
                 raise MuscleMSSError(f"SolvedModel: has no block '{name}'; it must have the "
                                      "same muscles as RestModel")
-        surfaces, fibres = [], []
-        for name, block in blocks:
+        for name in names:
             if name not in bindings:
                 raise MuscleMSSError(f"SolvedModel block '{name}': RestModel has no muscle of "
                                      "that name; block names must match")
-            surface, polylines = _deform_muscle(name, block, bindings[name], bones)
+        points = [_deformed_points(name, block, bindings[name]) for name, block in blocks]
+        deformed = [d for _, d in points]
+        reports = [{} for _ in names]
+        if bones is not None:
+            fields, transforms, outside, push = bones
+            deformed, reports = _keep_out_of_bones(
+                deformed, fields, transforms, np.concatenate([outside[n] for n in names]), push)
+        surfaces, fibres = [], []
+        for name, (current, _), surface_points, report in zip(names, points, deformed, reports):
+            surface, polylines = _muscle_outputs(name, bindings[name], current, surface_points,
+                                                 report)
             surfaces.append((name, surface))
             fibres.append((name, polylines))
         V.fill_multiblock(outputs[0], surfaces)
@@ -318,10 +331,18 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
     if len(short):
         raise MuscleMSSError(f"{where}: fibre {int(fibre_ids[short[0]])} has zero rest length; "
                              "a fibre needs at least two distinct particles")
-    grid = None if fibre_grid is None else \
-        np.asarray(fibre_grid, dtype=np.int32).reshape(-1, 2)[order[offsets[:-1]]]
+    grid = None if fibre_grid is None else V.shared_array(
+        A.FIBRE_GRID, np.asarray(fibre_grid, dtype=np.int32).reshape(-1, 2)[order[offsets[:-1]]])
+    fibres = V.make_polydata(rest_positions[order], line_offsets=offsets,
+                             line_connectivity=np.arange(len(order)))
+    V.set_cell_array(fibres, A.FIBRE_ID, fibre_ids.astype(np.int32))
+    V.set_point_array(fibres, A.FIBRE_INDEX,
+                      (np.arange(len(order)) - np.repeat(offsets[:-1], np.diff(offsets)))
+                      .astype(np.int32))
+    V.set_field(fibres, A.MUSCLE_NAME, name)
     return MuscleBinding(surface, rest_points, rest_positions, cage, rest_cage, weights, order,
-                         offsets, fibre_ids, grid, rest_lengths, np.ascontiguousarray(triangles))
+                         offsets, fibre_ids, grid, rest_lengths, np.ascontiguousarray(triangles),
+                         fibres)
 
 
 def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
@@ -346,33 +367,45 @@ def _after(outer, inner) -> np.ndarray:
 
 
 def new_in_bones(fields, transforms, points, outside):
-    """``(count, deepest mm, depth (n,) mm)`` of the ``points`` (n, 3) inside a posed bone they
-    were ``outside`` (n, b) at rest (depth 0 for the others)."""
+    """``(inside (n,) bool, depth (n,) mm)`` of the ``points`` (n, 3): which are inside a posed
+    bone they were ``outside`` (n, b) at rest, and how deep (0 for the others)."""
     distance, _ = signed_distances(fields, points, transforms)
     new = (distance < -INSIDE_TOLERANCE) & outside
-    depth = np.where(new, -distance, 0.0).max(axis=1, initial=0.0)
-    return int(new.any(axis=1).sum()), float(depth.max(initial=0.0)), depth
+    return new.any(axis=1), np.where(new, -distance, 0.0).max(axis=1, initial=0.0)
 
 
-def _keep_out_of_bones(deformed, fields, transforms, outside, push):
-    """``deformed`` (v, 3) with the vertices newly inside a bone pushed out (when ``push``),
-    and what to report: ``{array or field name: value}``."""
-    count, deepest, depth = new_in_bones(fields, transforms, deformed, outside)
-    after = (count, deepest)
-    if push and count:
+def _keep_out_of_bones(deformed: list, fields, transforms, outside, push):
+    """The muscles' ``deformed`` surface vertices (a list of (v_i, 3) arrays, mm) with those
+    newly inside a bone pushed out (when ``push``), and for each muscle what to report:
+    ``{array or field name: value}``. ``outside`` (sum v_i, b) bool: which vertex was outside
+    which bone at rest, the muscles' in turn. All muscles go through each kernel at once (one
+    parallel region each, not one per muscle)."""
+    sizes = np.array([len(d) for d in deformed])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    muscle = np.repeat(np.arange(len(sizes)), sizes)
+    points = np.concatenate(deformed)
+    inside, depth = new_in_bones(fields, transforms, points, outside)
+    count = np.bincount(muscle[inside], minlength=len(sizes))
+    deepest = np.maximum.reduceat(depth, starts[:-1])
+    count_after, deepest_after = count, deepest
+    if push and inside.any():
         # only the vertices newly inside move (a vertex already out gets exactly 0)
-        pushed = depth > 0.0
-        deformed = deformed.copy()
-        deformed[pushed] += push_out_of_bones(fields, deformed[pushed], None, transforms,
-                                              active=outside[pushed],
-                                              tolerance=INSIDE_TOLERANCE)
-        after = new_in_bones(fields, transforms, deformed[pushed], outside[pushed])[:2]
-    return deformed, {A.NEW_IN_BONE_DEPTH: depth, A.NEW_IN_BONE_VERTICES: count,
-                      A.NEW_IN_BONE_DEPTH_MM: deepest, A.NEW_IN_BONE_VERTICES_AFTER: after[0],
-                      A.NEW_IN_BONE_DEPTH_AFTER_MM: after[1]}
+        points[inside] += push_out_of_bones(fields, points[inside], None, transforms,
+                                            active=outside[inside], tolerance=INSIDE_TOLERANCE)
+        still, depth_after = new_in_bones(fields, transforms, points[inside], outside[inside])
+        count_after = np.bincount(muscle[inside][still], minlength=len(sizes))
+        deepest_after = np.zeros(len(sizes))
+        np.maximum.at(deepest_after, muscle[inside], depth_after)
+    reports = [{A.NEW_IN_BONE_DEPTH: depth[a:b], A.NEW_IN_BONE_VERTICES: int(count[i]),
+                A.NEW_IN_BONE_DEPTH_MM: float(deepest[i]),
+                A.NEW_IN_BONE_VERTICES_AFTER: int(count_after[i]),
+                A.NEW_IN_BONE_DEPTH_AFTER_MM: float(deepest_after[i])}
+               for i, (a, b) in enumerate(zip(starts[:-1], starts[1:]))]
+    return [points[a:b] for a, b in zip(starts[:-1], starts[1:])], reports
 
 
-def _deform_muscle(name, block, binding: MuscleBinding, bones=None):
+def _deformed_points(name, block, binding: MuscleBinding):
+    """``(particles (n, 3), surface vertices (v, 3))`` mm of one muscle's solved ``block``."""
     where = f"SolvedModel block '{name}'"
     current = V.points_of(block)
     if len(current) != len(binding.rest_positions):
@@ -381,18 +414,19 @@ def _deform_muscle(name, block, binding: MuscleBinding, bones=None):
     if not np.isfinite(current).all():
         raise MuscleMSSError(f"{where}: particle positions have NaN or infinite values")
     rest = V.point_array(block, A.REST_POSITION, where, required=False, dtype=np.float64)
-    if rest is not None:
+    if rest is not None and not np.array_equal(rest, binding.rest_positions):
         scale = 1e-9 * max(1.0, float(np.abs(binding.rest_positions).max()))
         if rest.shape != binding.rest_positions.shape or \
                 not np.allclose(rest, binding.rest_positions, rtol=0.0, atol=scale):
             raise MuscleMSSError(f"{where}: its rest_position differs from RestModel's; the "
                                  "solved model must come from the same Spring Builder output")
-    deformed = binding.rest_points + mvc_deform(
+    return current, binding.rest_points + mvc_deform(
         binding.weights, current[binding.cage.vertices] - binding.rest_cage)
-    report = {}
-    if bones is not None:
-        fields, transforms, outside, push = bones
-        deformed, report = _keep_out_of_bones(deformed, fields, transforms, outside[name], push)
+
+
+def _muscle_outputs(name, binding: MuscleBinding, current, deformed, report):
+    """The deformed surface (``deformed`` (v, 3) mm, with normals, displacement and the
+    ``report``'s arrays and fields) and the fibre polylines through ``current`` (n, 3) mm."""
     surface = V.with_points(binding.surface, deformed)
     V.set_normals(surface, point_normals(deformed, binding.triangles))
     V.set_point_array(surface, A.DISPLACEMENT, deformed - binding.rest_points)
@@ -403,17 +437,10 @@ def _deform_muscle(name, block, binding: MuscleBinding, bones=None):
             V.set_field(surface, key, value)
     V.set_field(surface, A.MUSCLE_NAME, name)
 
-    counts = np.diff(binding.offsets)
-    polylines = V.make_polydata(current[binding.order], line_offsets=binding.offsets,
-                                line_connectivity=np.arange(len(binding.order)))
+    polylines = V.with_points(binding.fibres, current[binding.order])
     lengths = polyline_lengths(current, binding.order, binding.offsets)
-    V.set_cell_array(polylines, A.FIBRE_ID, binding.fibre_ids.astype(np.int32))
     V.set_cell_array(polylines, A.FIBRE_LENGTH, lengths)
     V.set_cell_array(polylines, A.FIBRE_STRAIN, lengths / binding.rest_lengths - 1.0)
     if binding.fibre_grid is not None:
-        V.set_cell_array(polylines, A.FIBRE_GRID, binding.fibre_grid)
-    V.set_point_array(polylines, A.FIBRE_INDEX,
-                      (np.arange(len(binding.order))
-                       - np.repeat(binding.offsets[:-1], counts)).astype(np.int32))
-    V.set_field(polylines, A.MUSCLE_NAME, name)
+        polylines.GetCellData().AddArray(binding.fibre_grid)
     return surface, polylines

@@ -276,12 +276,12 @@ class RigidPoseTransform(MuscleFilter):
         # the point arrays every posed block gets, made once: the same VTK arrays at every
         # time point let the solver know its model's arrays unchanged (V.arrays_identity)
         self._rest["model arrays"] = [
-            [V.point_data_array(A.BONE_WEIGHTS, weights[start:stop])]
-            + ([] if radii is None else [V.point_data_array(A.RADIUS, radii)])
-            + [V.point_data_array(A.IN_BONE_AT_REST, inside.astype(np.uint8))]
+            [V.shared_array(A.BONE_WEIGHTS, weights[start:stop])]
+            + ([] if radii is None else [V.shared_array(A.RADIUS, radii)])
+            + [V.shared_array(A.IN_BONE_AT_REST, inside.astype(np.uint8))]
             for (start, stop), (radii, inside) in zip(self._rest["model"], clearance)]
         self._rest["surface arrays"] = [
-            [V.point_data_array(A.BONE_WEIGHTS, weights[start:stop])]
+            [V.shared_array(A.BONE_WEIGHTS, weights[start:stop])]
             for start, stop in self._rest["surfaces"]]
         self._rest_key = key
         return self._rest

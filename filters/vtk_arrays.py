@@ -188,10 +188,10 @@ def set_normals(dataset, values) -> None:
     dataset.GetPointData().SetNormals(_to_vtk("Normals", values))
 
 
-def point_data_array(name: str, values):
+def shared_array(name: str, values):
     """A new VTK array of ``values`` ((n,) or (n, k)) to share among the outputs of several
-    updates (:func:`add_point_arrays`): the same array keeps the outputs'
-    :func:`arrays_identity`."""
+    updates (as point data by :func:`add_point_arrays`, or cell data): the same array keeps the
+    outputs' :func:`arrays_identity`, and is made once."""
     return _to_vtk(name, values)
 
 
