@@ -54,6 +54,30 @@ class VolumeErrorProbe(MuscleFilter):
     )
     PROPERTIES = ()
 
+    def __init__(self):
+        super().__init__()
+        self._rest = {}     # muscle name -> (block identity, triangles (m, 3), volume mm^3)
+
+    def rest_surface(self, name, rest):
+        """``(triangles (m, 3), volume mm^3)`` of the muscle's rest surface block ``rest``,
+        checked (closed, manifold, outward); remembered per block (its VTK object and
+        modification time, which its points and cells raise): the scene's rest surfaces are the
+        same at every time point."""
+        where = f"RestSurfaces block '{name}'"
+        if not rest.IsA("vtkPolyData"):
+            raise MuscleMSSError(f"{where}: is a {rest.GetClassName()}; a muscle surface must "
+                                 "be a triangle vtkPolyData")
+        identity = (rest.__this__, rest.GetMTime())
+        known = self._rest.get(name)
+        if known is None or known[0] != identity:
+            points, triangles = V.points_of(rest), V.triangles_of(rest, where)
+            problems = rest_surface_problems(points, triangles)
+            if problems:
+                raise MuscleMSSError(f"{where} {problems[0]}; a volume needs a closed, "
+                                     "outward-oriented surface")
+            known = self._rest[name] = (identity, triangles, signed_volume(points, triangles))
+        return known[1:]
+
     def execute(self, inputs, outputs):
         deformed_blocks = V.blocks(inputs[0], where="DeformedSurfaces")
         rest_blocks = dict(V.blocks(inputs[1], where="RestSurfaces"))
@@ -66,7 +90,8 @@ class VolumeErrorProbe(MuscleFilter):
             if name not in rest_blocks:
                 raise MuscleMSSError(f"RestSurfaces: has no block '{name}'; every deformed "
                                      "muscle needs its rest surface (block names must match)")
-            rest_volume, volume = _volumes(name, block, rest_blocks[name])
+            rest_triangles, rest_volume = self.rest_surface(name, rest_blocks[name])
+            volume = _volume(name, block, rest_triangles)
             error_pct = 100.0 * volume_error(volume, rest_volume)
             out = block.NewInstance()
             out.ShallowCopy(block)
@@ -91,20 +116,13 @@ class VolumeErrorProbe(MuscleFilter):
         })
 
 
-def _volumes(name, deformed, rest):
-    """``(rest volume, deformed volume)`` in mm^3 of one muscle, its surfaces checked."""
-    rest_where = f"RestSurfaces block '{name}'"
+def _volume(name, deformed, rest_triangles):
+    """The volume (mm^3) of one muscle's deformed surface, checked (its own checks when its
+    triangles are not the rest surface's ``rest_triangles``)."""
     where = f"DeformedSurfaces block '{name}'"
-    for block, block_where in ((rest, rest_where), (deformed, where)):
-        if not block.IsA("vtkPolyData"):
-            raise MuscleMSSError(f"{block_where}: is a {block.GetClassName()}; a muscle surface "
-                                 "must be a triangle vtkPolyData")
-    rest_points = V.points_of(rest)
-    rest_triangles = V.triangles_of(rest, rest_where)
-    problems = rest_surface_problems(rest_points, rest_triangles)
-    if problems:
-        raise MuscleMSSError(f"{rest_where} {problems[0]}; a volume needs a closed, "
-                             "outward-oriented surface")
+    if not deformed.IsA("vtkPolyData"):
+        raise MuscleMSSError(f"{where}: is a {deformed.GetClassName()}; a muscle surface must "
+                             "be a triangle vtkPolyData")
     points = V.points_of(deformed)
     triangles = V.triangles_of(deformed, where)
     if not np.isfinite(points).all():
@@ -115,4 +133,4 @@ def _volumes(name, deformed, rest):
         if problems:
             raise MuscleMSSError(f"{where} {problems[0]}; a volume needs a closed, "
                                  "outward-oriented surface")
-    return signed_volume(rest_points, rest_triangles), signed_volume(points, triangles)
+    return signed_volume(points, triangles)

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
+from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet, vtkUnstructuredGrid
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as SDDP
@@ -306,6 +307,31 @@ def test_volumes_agree_with_vtk_mass_properties_and_the_table():
     for column in (A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT):
         assert table[column][-1] == pytest.approx(table[column][:-1].mean(), rel=1e-12)
     assert table[A.VOLUME_ERROR_PCT].max() > 0.0
+
+
+
+def test_the_probe_measures_a_rest_surface_once_and_again_after_it_changes():
+    from muscle_mss.filters import check_cache
+    model, surfaces = scene()
+    deformed = deform(moved(model, lambda p: p * 1.01), surfaces, model).GetOutputDataObject(0)
+    p = probe(deformed, surfaces)
+    first = V.table_columns(p.GetOutputDataObject(1))[A.REST_VOLUME]
+    checked = check_cache.check_counts["checked"]
+    reused = check_cache.check_counts["reused"]
+    p.Modified()
+    p.Update()
+    assert check_cache.check_counts == {"checked": checked, "reused": reused}  # remembered
+    np.testing.assert_array_equal(V.table_columns(p.GetOutputDataObject(1))[A.REST_VOLUME],
+                                  first)
+    # a rest surface scaled in place (and marked modified) is checked and measured again
+    vastus = dict(V.blocks(surfaces))["vastus"]
+    vtk_to_numpy(vastus.GetPoints().GetData())[:] *= 2.0        # a view: in place
+    vastus.GetPoints().Modified()
+    p.Modified()
+    p.Update()
+    again = V.table_columns(p.GetOutputDataObject(1))[A.REST_VOLUME]
+    assert check_cache.check_counts["checked"] == checked + 1
+    assert again[0] == pytest.approx(8.0 * first[0], rel=1e-12) and again[1] == first[1]
 
 
 # ---- bad input -------------------------------------------------------------------------------
