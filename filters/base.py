@@ -106,7 +106,8 @@ class MuscleFilter(VTKPythonAlgorithmBase):
         self.SetAbortExecute(0)
         self._error = None
         self._request, self._out_info = request, outInfo
-        outputs = [outInfo.GetInformationObject(i).Get(vtkDataObject.DATA_OBJECT())
+        data_object = vtkDataObject.DATA_OBJECT()     # its Get: see vtk_arrays.blocks
+        outputs = [data_object.Get(outInfo.GetInformationObject(i))
                    for i in range(self.GetNumberOfOutputPorts())]
         if upstream_error(self) is not None:
             # an upstream filter refused its input and emptied its outputs: its message is the
@@ -121,7 +122,7 @@ class MuscleFilter(VTKPythonAlgorithmBase):
             for i, port in enumerate(self.INPUTS):
                 data = None
                 if inInfo[i].GetNumberOfInformationObjects() > 0:
-                    data = inInfo[i].GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
+                    data = data_object.Get(inInfo[i].GetInformationObject(0))
                 if data is None and not port.optional:
                     raise MuscleMSSError(f"input '{port.name}' is not connected")
                 inputs.append(data)
