@@ -1,19 +1,20 @@
 """Benchmark of one time point of a motion run, part by part (issue 15).
 
-The full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations) is run through the
-CLI's pipeline (:mod:`muscle_mss.filters.motion_run`) at N = 20 and 80 particles per fibre. For
-each time point the pipeline is updated stage by stage and each stage timed: pose (Rigid Pose
-Transform), solver setup (the MSS Collision Solver's update less its iterations), iterations
-(the solver's iteration chunks), MVC (MVC Surface Deformer), statistics (Volume-Error Probe and
-the runner's summary rows: penetration, strain) and writing (the three series, appended raw
-LZ4, and the convergence table). The first time point (MVC weights, kernel loads, bone sphere
-sampling) is listed apart from the steady state (mean of the later ones). A second table times
-the two parts issue 15 replaced, on the last time point's data: bone spheres sampled afresh vs
-taken from the rigid-bone cache, and the penetration statistics' Python reference vs its Numba
-grid; and the writing with VTK's default ZLib compressor vs LZ4. Writes
-benchmarks/results/time_point.md.
+The full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations) and the full demo elbow
+(7 muscles, 4 bones) are run through the CLI's pipeline (:mod:`muscle_mss.filters.motion_run`)
+at N = 20 and 80 particles per fibre. For each time point the pipeline is updated stage by stage
+and each stage timed: pose (Rigid Pose Transform), solver setup (the MSS Collision Solver's
+update less its iterations), iterations (the solver's iteration chunks), MVC (MVC Surface
+Deformer), statistics (Volume-Error Probe and the runner's summary rows: penetration, strain)
+and writing (the three series, appended raw LZ4, and the convergence table). The first time
+point (MVC weights, kernel loads, bone sphere sampling) is listed apart from the steady state
+(mean of the later ones). A second table times the two parts issue 15 replaced, on the last time
+point's data: bone spheres sampled afresh vs taken from the rigid-bone cache, and the
+penetration statistics' Python reference vs its Numba grid; and the writing with VTK's default
+ZLib compressor vs LZ4. Writes benchmarks/results/time_point.md.
 
-    python benchmarks/bench_time_point.py [N ...] [--points K]    (default: 20 80, K = 4)
+    python benchmarks/bench_time_point.py [N ...] [--points K] [--scenes thigh arm]
+                                             (default: 20 80, K = 4, both scenes)
 """
 from __future__ import annotations
 
@@ -30,8 +31,8 @@ import numpy as np
 
 from muscle_mss.core import penetration as P
 from muscle_mss.core import solver as S
-from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.filters import bone_sets, motion_run
+from muscle_mss.filters.cli import DEMO_REGIONS, demo_region_scene
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.mvc_surface_deformer import weight_counts
 from muscle_mss.filters.scene_io import write_scene
@@ -127,11 +128,18 @@ def replaced_parts(pipeline, index, result, out) -> list:
 
 def sizes_and_points(argv, description):
     """The command line of this benchmark and of bench_time_slider: ``sizes`` (N values,
-    default 20 80) and ``--points`` (time points per N, first + rest, default 4)."""
+    default 20 80), ``--points`` (time points per N, first + rest, default 4) and ``--scenes``
+    (demo regions, default all of :data:`DEMO_REGIONS`: the thigh and the elbow)."""
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("sizes", nargs="*", type=int, default=[20, 80])
     parser.add_argument("--points", type=int, default=4, help="time points per N (first + rest)")
+    parser.add_argument("--scenes", nargs="+", choices=DEMO_REGIONS, default=list(DEMO_REGIONS),
+                        help="demo scenes (default: all)")
     return parser.parse_args(argv)
+
+
+SCENE_LABELS = {"thigh": "thigh (13 muscles)", "arm": "elbow (7 muscles)"}
+"""How the tables name each demo scene (``--scenes``)."""
 
 
 def spread(count, points) -> list:
@@ -146,57 +154,65 @@ def main(argv=None):
     S._solve_chunk = clock
     table, replaced = [], []
     with tempfile.TemporaryDirectory() as folder:
-        write_scene(demo_scene("full"), os.path.join(folder, "scene"))
-        for n in args.sizes:
-            bone_sets.clear_bone_cache()
-            pipeline = build_pipeline(os.path.join(folder, "scene"), {"ParticlesPerFibre": n})
-            indices = spread(len(pipeline.times), args.points)
-            out = os.path.join(folder, f"out{n}")
-            runs = []
-            loaded = (bone_sets.field_counts["loaded"], weight_counts["loaded"])
-            for index in indices:
-                seconds, result = time_point_parts(pipeline, index, out, clock)
-                if not runs:
-                    fields = ", ".join((
-                        "bone fields " + ("from disk" if bone_sets.field_counts["loaded"]
-                                          > loaded[0] else "sampled"),
-                        "MVC weights " + ("from disk" if weight_counts["loaded"] > loaded[1]
-                                          else "computed")))
-                runs.append(seconds)
-                print(f"N={n} t={pipeline.times[index]:.3f}: "
-                      + ", ".join(f"{k} {v:.3f}" for k, v in seconds.items())
-                      + f"; load {os.getloadavg()[0]:.2f}", flush=True)
-            steady = {k: float(np.mean([r[k] for r in runs[1:]])) for k in PARTS} \
-                if len(runs) > 1 else None
-            table.append((n, runs[0], steady, len(runs) - 1, os.getloadavg()[0], fields))
-            replaced += [(n,) + r for r in replaced_parts(pipeline, indices[-1], result, out)]
+        for region in args.scenes:
+            scene = os.path.join(folder, region)
+            write_scene(demo_region_scene(region, "full"), scene)
+            for n in args.sizes:
+                bone_sets.clear_bone_cache()
+                pipeline = build_pipeline(scene, {"ParticlesPerFibre": n})
+                indices = spread(len(pipeline.times), args.points)
+                out = os.path.join(folder, f"{region}{n}")
+                runs = []
+                loaded = (bone_sets.field_counts["loaded"], weight_counts["loaded"])
+                for index in indices:
+                    seconds, result = time_point_parts(pipeline, index, out, clock)
+                    if not runs:
+                        fields = ", ".join((
+                            "bone fields " + ("from disk" if bone_sets.field_counts["loaded"]
+                                              > loaded[0] else "sampled"),
+                            "MVC weights " + ("from disk" if weight_counts["loaded"] > loaded[1]
+                                              else "computed")))
+                    runs.append(seconds)
+                    print(f"{region} N={n} t={pipeline.times[index]:.3f}: "
+                          + ", ".join(f"{k} {v:.3f}" for k, v in seconds.items())
+                          + f"; load {os.getloadavg()[0]:.2f}", flush=True)
+                steady = {k: float(np.mean([r[k] for r in runs[1:]])) for k in PARTS} \
+                    if len(runs) > 1 else None
+                label = SCENE_LABELS[region]
+                table.append((label, n, runs[0], steady, len(runs) - 1, os.getloadavg()[0],
+                              fields))
+                replaced += [(label, n) + r
+                             for r in replaced_parts(pipeline, indices[-1], result, out)]
     lines = [
         "# One time point of a motion run, part by part (issue 15)", "",
         f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
         f"({numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, "
         f"Python {platform.python_version()}. Load average (1 min) after each N is given: the "
         "machine is shared, so the seconds are pessimistic and vary between runs.", "",
-        "Full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations), the CLI's "
-        "pipeline; `python benchmarks/bench_time_point.py`. Steady state: mean of the time "
-        "points after the first. The first time point reads the bones' distance fields and the "
-        "muscles' MVC weights from the disk stores of an earlier run when they have them "
+        "Full demo thigh (13 muscles x 64 fibres, 3 bones) and elbow (7 muscles, 4 bones), "
+        "lattice-26, 500 iterations, the CLI's pipeline; "
+        "`python benchmarks/bench_time_point.py`. Steady state: mean of the time points after "
+        "the first. The first time point reads the bones' distance fields and the muscles' "
+        "MVC weights from the disk stores of an earlier run when they have them "
         "(core/field_store.py, mvc_surface_deformer.WEIGHTS_STORE), else computes them; its "
         "row says which. 'around' = all but the iterations.", "",
-        "| N | time point | " + " | ".join(f"{p} s" for p in PARTS) + " | around s | total s "
-        "| load |",
-        "|---|---|" + "---|" * (len(PARTS) + 3)]
-    for n, first, steady, count, load, fields in table:
+        "| scene | N | time point | " + " | ".join(f"{p} s" for p in PARTS)
+        + " | around s | total s | load |",
+        "|---|---|---|" + "---|" * (len(PARTS) + 3)]
+    for scene, n, first, steady, count, load, fields in table:
         for label, seconds in ((f"first ({fields})", first), (f"steady ({count})", steady)):
             if seconds is None:
                 continue
             around = sum(v for k, v in seconds.items() if k != "iterations")
-            lines.append(f"| {n} | {label} | " + " | ".join(f"{seconds[p]:.3f}" for p in PARTS)
+            lines.append(f"| {scene} | {n} | {label} | "
+                         + " | ".join(f"{seconds[p]:.3f}" for p in PARTS)
                          + f" | {around:.3f} | {around + seconds['iterations']:.3f} "
                          f"| {load:.2f} |")
     lines += ["", "Parts replaced by issue 15, on the last time point's data (old / new):", "",
-              "| N | part | old s | new s | old / new |", "|---|---|---|---|---|"]
-    for n, part, old, new in replaced:
-        lines.append(f"| {n} | {part} | {old:.4f} | {new:.4f} | {old / max(new, 1e-9):.1f} |")
+              "| scene | N | part | old s | new s | old / new |", "|---|---|---|---|---|---|"]
+    for scene, n, part, old, new in replaced:
+        lines.append(f"| {scene} | {n} | {part} | {old:.4f} | {new:.4f} "
+                     f"| {old / max(new, 1e-9):.1f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     out = Path(__file__).resolve().parent / "results" / "time_point.md"

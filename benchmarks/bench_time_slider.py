@@ -1,7 +1,8 @@
 """Benchmark of ParaView's time slider on the Muscle MSS pipeline (issue 15), in pvpython.
 
 The plugin's pipeline (:func:`muscle_mss.plugin.pipeline.build_pipeline`, shown in a render view
-as the GUI shows it) is built on the full demo thigh at N = 20 and 80 particles per fibre, and
+as the GUI shows it) is built on the full demo thigh and elbow at N = 20 and 80 particles per
+fibre, and
 the animation time is stepped through time points as a user drags the time slider. Each step
 updates the filters in pipeline order and then renders; per step it records the seconds of the
 Rigid Pose Transform, the MSS Collision Solver (split into its iterations, from its convergence
@@ -12,7 +13,7 @@ MVC weights, bone fields, kernel loads) is listed apart from the steady state (m
 later steps). Writes benchmarks/results/time_slider.md.
 
     PYTHONPATH=$PWD/plugin/shim xvfb-run -a pvpython benchmarks/bench_time_slider.py \
-        [N ...] [--points K]                                     (default: 20 80, K = 4)
+        [N ...] [--points K] [--scenes thigh arm]     (default: 20 80, K = 4, both scenes)
 """
 import os
 import platform
@@ -26,10 +27,10 @@ from paraview import simple
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_solver import cpu_model, write_result  # noqa: E402
-from bench_time_point import sizes_and_points, spread  # noqa: E402
+from bench_time_point import SCENE_LABELS, sizes_and_points, spread  # noqa: E402
 
-from muscle_mss.core.demo_scene import demo_scene  # noqa: E402
 from muscle_mss.filters import base, bone_sets  # noqa: E402
+from muscle_mss.filters.cli import demo_region_scene  # noqa: E402
 from muscle_mss.filters import vtk_arrays as V  # noqa: E402
 from muscle_mss.filters.scene_io import write_scene  # noqa: E402
 from muscle_mss.plugin.pipeline import build_pipeline, show_pipeline  # noqa: E402
@@ -88,48 +89,52 @@ def main(argv=None):
     rows = []
     clock = FilterClock()
     with tempfile.TemporaryDirectory() as folder:
-        scene = os.path.join(folder, "scene")
-        write_scene(demo_scene("full"), scene)
-        for n in args.sizes:
-            # a fresh session for each N: the last N's pipeline, views and layouts removed
-            for source in list(simple.GetSources().values()):
-                simple.Delete(source)
-            for view in list(simple.GetViews()):
-                simple.Delete(view)
-            for layout in list(simple.GetLayouts().values()):
-                simple.RemoveLayout(layout)
-            bone_sets.clear_bone_cache()        # each N's first step samples the bones
-            p = build_pipeline(scene, show=False, settings={"ParticlesPerFibre": n})
-            times = list(p["Rigid Pose Transform"].TimestepValues)
-            steps = []
-            for t in [times[i] for i in spread(len(times), args.points)]:
-                steps.append(slider_step(p, t, clock, first=not steps))
-                print(f"N={n} t={t:.3f}: " + ", ".join(f"{k} {v:.3f}"
-                                                       for k, v in steps[-1].items()), flush=True)
-            steady = {k: float(np.mean([s[k] for s in steps[1:]])) for k in steps[0]}
-            rows.append((n, steps[0], steady, len(steps) - 1, os.getloadavg()[0]))
+        for region in args.scenes:
+            scene = os.path.join(folder, region)
+            write_scene(demo_region_scene(region, "full"), scene)
+            for n in args.sizes:
+                # a fresh session for each N: the last pipeline, views and layouts removed
+                for source in list(simple.GetSources().values()):
+                    simple.Delete(source)
+                for view in list(simple.GetViews()):
+                    simple.Delete(view)
+                for layout in list(simple.GetLayouts().values()):
+                    simple.RemoveLayout(layout)
+                bone_sets.clear_bone_cache()        # each N's first step samples the bones
+                p = build_pipeline(scene, show=False, settings={"ParticlesPerFibre": n})
+                times = list(p["Rigid Pose Transform"].TimestepValues)
+                steps = []
+                for t in [times[i] for i in spread(len(times), args.points)]:
+                    steps.append(slider_step(p, t, clock, first=not steps))
+                    print(f"{region} N={n} t={t:.3f}: " + ", ".join(
+                        f"{k} {v:.3f}" for k, v in steps[-1].items()), flush=True)
+                steady = {k: float(np.mean([s[k] for s in steps[1:]])) for k in steps[0]}
+                rows.append((SCENE_LABELS[region], n, steps[0], steady, len(steps) - 1,
+                             os.getloadavg()[0]))
     lines = [
         "# ParaView's time slider on the Muscle MSS pipeline (issue 15)", "",
         f"Machine: {cpu_model()}, {os.cpu_count()} cores; pvpython (Python "
         f"{platform.python_version()}, numba {numba.__version__} with "
         f"{numba.config.NUMBA_NUM_THREADS} threads, numpy {np.__version__}). Load average "
         "(1 min) after each N is given.", "",
-        "Full demo thigh (13 muscles x 64 fibres, lattice-26, filter defaults), the plugin's "
-        "pipeline shown in a render view; `PYTHONPATH=$PWD/plugin/shim xvfb-run -a pvpython "
-        "benchmarks/bench_time_slider.py`. One row per N: the first step of the time slider, "
-        "then the mean of the later steps (steady state); the first step's render creates the "
-        "displays and the chart view as Apply does and renders once. 'around' = all but the "
+        "Full demo thigh (13 muscles x 64 fibres, 3 bones) and elbow (7 muscles, 4 bones), "
+        "lattice-26, filter defaults, the plugin's pipeline shown in a render view; "
+        "`PYTHONPATH=$PWD/plugin/shim xvfb-run -a pvpython benchmarks/bench_time_slider.py`. "
+        "One row per scene and N: the first step of the time slider, then the mean of the "
+        "later steps (steady state); the first step's render creates the displays and the "
+        "chart view as Apply does and renders once. 'around' = all but the "
         "iterations; 'of which ParaView' = the part of the four filters' updates spent outside "
         "their RequestData (ParaView's executives, data information and displays).",
         "",
-        "| N | step | " + " s | ".join(COLUMNS) + " s | around s | of which ParaView s "
+        "| scene | N | step | " + " s | ".join(COLUMNS) + " s | around s | of which ParaView s "
         "| total s | load |",
-        "|---|---|" + "---|" * (len(COLUMNS) + 4),
+        "|---|---|---|" + "---|" * (len(COLUMNS) + 4),
     ]
-    for n, first, steady, count, load in rows:
+    for scene, n, first, steady, count, load in rows:
         for label, s in (("first", first), (f"steady ({count})", steady)):
             total = sum(s[k] for k in COLUMNS)
-            lines.append(f"| {n} | {label} | " + " | ".join(f"{s[k]:.3f}" for k in COLUMNS)
+            lines.append(f"| {scene} | {n} | {label} | "
+                         + " | ".join(f"{s[k]:.3f}" for k in COLUMNS)
                          + f" | {total - s['iterations']:.3f} | {s['ParaView']:.3f} "
                          f"| {total:.3f} | {load:.2f} |")
     write_result(lines, "time_slider.md")
