@@ -132,3 +132,18 @@ def test_batch_with_overwrite_replaces_the_earlier_run(small_scene, small_scene_
     assert sorted(p.name for p in (tmp_path / "series").glob("surfaces_*.vtm")) \
         == sorted(os.path.basename(file) for _, file in entries)
     assert not list(tmp_path.glob(".summary.rank*"))
+
+
+def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
+    from muscle_mss.filters.cli import summary_table
+    row = {"muscle": "vastus", "volume_error_pct": "1.5", "max_fibre_strain": "0.1",
+           "sphere_overlap_mm": "0.01", "new_in_bone_depth_mm": "4.7",
+           "new_in_bone_depth_after_push_mm": "0.0", "iterations": "500", "seconds": "0.7"}
+    header, _, line = summary_table([row]).splitlines()[:3]
+    columns = dict(zip(["muscle", "mean", "max", "strain", "overlap", "in bone", "pushed",
+                        "iters", "seconds"], line.split()))
+    assert "in bone mm" in header and "pushed mm" in header
+    assert header.index("in bone mm") < header.index("pushed mm")
+    assert columns["in bone"] == "0.000" and columns["pushed"] == "4.700"
+    no_bones = dict(row, new_in_bone_depth_mm="", new_in_bone_depth_after_push_mm="")
+    assert summary_table([no_bones]).splitlines()[2].split()[5:7] == ["-", "-"]
