@@ -23,7 +23,8 @@ if [ "$need_apt" = 1 ]; then
     xvfb xauth openmpi-bin python3-venv python3-pip >/dev/null
 fi
 
-if ! .venv/bin/python -c "import muscle_mss.filters, pyvista, pytest" >/dev/null 2>&1; then
+if ! .venv/bin/python -c "import importlib.metadata as m, muscle_mss.filters, pyvista, pytest
+m.version('tbb')" >/dev/null 2>&1; then
   echo "setup: creating .venv with muscle-mss and its test extra" >&2
   python3 -m venv .venv
   .venv/bin/python -m pip install -q --upgrade pip

@@ -24,11 +24,9 @@ from __future__ import annotations
 import argparse
 import os
 from dataclasses import replace
-import platform
 import tempfile
 import time
 
-import numba
 import numpy as np
 
 from muscle_mss.core import solver as S
@@ -41,7 +39,7 @@ from muscle_mss.filters.collision_solver import solid_bones
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
 from muscle_mss.filters.scene_io import write_scene
 
-from bench_solver import (BONE_COUNTS, ITERATIONS, REPEATS, cpu_model, posed_workload,
+from bench_solver import (BONE_COUNTS, ITERATIONS, REPEATS, machine, posed_workload,
                           write_result)
 
 CONTACTS = ("sphere set", "solid")
@@ -142,9 +140,7 @@ def main(args):
 
     lines = [
         "# Muscle-bone contact: sphere sets vs solids (issue 14)", "",
-        f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
-        f"({numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, Python "
-        f"{platform.python_version()}. The machine is shared: the load average (1 min) after "
+        f"Machine: {machine()}. The machine is shared: the load average (1 min) after "
         "each row is given.", "",
         "## Contact time on the paper's workload", "",
         f"Full demo thigh, paper relaxation, {ITERATIONS} iterations, spatial hash, the paper's "

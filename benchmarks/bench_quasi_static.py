@@ -17,11 +17,9 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import tempfile
 import time
 
-import numba
 import numpy as np
 
 from muscle_mss.core import quasi_static as Q
@@ -33,7 +31,7 @@ from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_bloc
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
-from bench_solver import cpu_model, write_result
+from bench_solver import machine, write_result
 
 POSES = (("walking", 0.35), ("most flexed", 0.75))
 
@@ -117,9 +115,7 @@ def main(args):
 
     lines = [
         "# Quasi-static solver benchmark (full demo thigh, issue 11)", "",
-        f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
-        f"({numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, Python "
-        f"{platform.python_version()}. The machine is shared: the load average (1 min) after "
+        f"Machine: {machine()}. The machine is shared: the load average (1 min) after "
         "each row is given.", "",
         f"Default solve: Tolerance {Q.DEFAULT_TOLERANCE} mm, cap {args.cap} iterations, bones "
         f"as solids (the filter's default). Tighter: Tolerance {Q.DEFAULT_TOLERANCE / 10} mm, "

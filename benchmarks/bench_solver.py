@@ -49,6 +49,19 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def machine() -> str:
+    """The machine and the numeric stack, for a benchmark's table: CPU, cores, Numba with the
+    threading layer it runs its parallel kernels on (call after one has run) and its threads,
+    NumPy, Python."""
+    try:
+        layer = numba.threading_layer()
+    except ValueError:          # no parallel kernel has run yet
+        layer = "threading layer not chosen yet"
+    return (f"{cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} ({layer}, "
+            f"{numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, Python "
+            f"{platform.python_version()}")
+
+
 def write_result(lines, name) -> None:
     """Print the table ``lines`` and write it to ``benchmarks/results/<name>``."""
     text = "\n".join(lines) + "\n"
@@ -104,9 +117,7 @@ def main(sizes):
                   f"{os.getloadavg()[0]:.2f}", flush=True)
     lines = [
         "# MSS Collision Solver benchmark (paper's workload, 500 iterations)", "",
-        f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
-        f"({numba.config.THREADING_LAYER} threading, {numba.config.NUMBA_NUM_THREADS} threads), "
-        f"numpy {np.__version__}, Python {platform.python_version()}.",
+        f"Machine: {machine()}.",
         "Load average (1 min) after each run is given: on a shared machine the numbers are "
         "pessimistic.", "",
         f"Each row is the median of {REPEATS} solves (their range beside it); MSS includes "

@@ -20,13 +20,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from muscle_mss.core import penetration as P
@@ -37,7 +35,7 @@ from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.mvc_surface_deformer import weight_counts
 from muscle_mss.filters.scene_io import write_scene
 
-from bench_solver import cpu_model
+from bench_solver import machine
 
 PARTS = ("pose", "solver setup", "iterations", "MVC", "statistics", "writing")
 
@@ -185,9 +183,7 @@ def main(argv=None):
                              for r in replaced_parts(pipeline, indices[-1], result, out)]
     lines = [
         "# One time point of a motion run, part by part (issue 15)", "",
-        f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
-        f"({numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, "
-        f"Python {platform.python_version()}. Load average (1 min) after each N is given: the "
+        f"Machine: {machine()}. Load average (1 min) after each N is given: the "
         "machine is shared, so the seconds are pessimistic and vary between runs.", "",
         "Full demo thigh (13 muscles x 64 fibres, 3 bones) and elbow (7 muscles, 4 bones), "
         "lattice-26, 500 iterations, the CLI's pipeline; "

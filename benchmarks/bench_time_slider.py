@@ -16,17 +16,15 @@ later steps). Writes benchmarks/results/time_slider.md.
         [N ...] [--points K] [--scenes thigh arm]     (default: 20 80, K = 4, both scenes)
 """
 import os
-import platform
 import sys
 import tempfile
 import time
 
-import numba
 import numpy as np
 from paraview import simple
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_solver import cpu_model, write_result  # noqa: E402
+from bench_solver import machine, write_result  # noqa: E402
 from bench_time_point import SCENE_LABELS, sizes_and_points, spread  # noqa: E402
 
 from muscle_mss.filters import base, bone_sets  # noqa: E402
@@ -113,9 +111,7 @@ def main(argv=None):
                              os.getloadavg()[0]))
     lines = [
         "# ParaView's time slider on the Muscle MSS pipeline (issue 15)", "",
-        f"Machine: {cpu_model()}, {os.cpu_count()} cores; pvpython (Python "
-        f"{platform.python_version()}, numba {numba.__version__} with "
-        f"{numba.config.NUMBA_NUM_THREADS} threads, numpy {np.__version__}). Load average "
+        f"Machine: {machine()}; pvpython. Load average "
         "(1 min) after each N is given.", "",
         "Full demo thigh (13 muscles x 64 fibres, 3 bones) and elbow (7 muscles, 4 bones), "
         "lattice-26, filter defaults, the plugin's pipeline shown in a render view; "

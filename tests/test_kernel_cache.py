@@ -108,3 +108,20 @@ def test_a_child_process_inherits_the_base_not_a_nested_folder(monkeypatch):
     monkeypatch.setenv("NUMBA_CACHE_DIR", resolved)
     assert kernel_cache.base_cache_dir() == os.path.dirname(resolved)
     assert kernel_cache.kernel_cache_dir() == resolved
+
+
+def test_parallel_kernels_run_on_tbb_where_the_tbb_package_is_installed():
+    """The pip package tbb (a dependency of the venv) puts its library in ``<venv>/lib``, off
+    the loader's path; importing muscle_mss.core loads it, so that Numba takes its TBB layer
+    (faster than OpenMP's sleeping threads, README "Speed"). Debian's Numba has none."""
+    import importlib.metadata
+    import numpy as np
+    import pytest
+    try:
+        importlib.metadata.version("tbb")
+    except importlib.metadata.PackageNotFoundError:
+        pytest.skip("no tbb package for this Python (Debian's: OpenMP)")
+    from muscle_mss.core.mvc import mvc_deform
+    np.testing.assert_array_equal(mvc_deform(np.full((4, 3), 0.5), np.ones((3, 3))),
+                                  np.full((4, 3), 1.5))
+    assert numba.threading_layer() == "tbb"
