@@ -15,6 +15,7 @@ files are kept, the least recently used dropped.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import tempfile
@@ -44,12 +45,8 @@ class DiskStore:
             return None
         if chosen:
             return chosen
-        digest = hashlib.sha1()
-        for source in self.sources:
-            with open(source, "rb") as f:
-                digest.update(f.read())
         return os.path.join(base_cache_dir(),
-                            f"{self.name}-{digest.hexdigest()[:16]}-{runtime_tag()}")
+                            f"{self.name}-{_sources_digest(self.sources)}-{runtime_tag()}")
 
     def load(self, key: str, names) -> dict | None:
         """The arrays ``names`` stored under ``key``, or None when the store is off, holds no
@@ -88,6 +85,17 @@ class DiskStore:
         except OSError:
             if os.path.exists(staged):
                 os.remove(staged)
+
+
+@functools.lru_cache(maxsize=None)
+def _sources_digest(sources: tuple) -> str:
+    """A digest of the files ``sources``, read once per process (a store is asked for its
+    folder at every load and save: one per muscle and bone)."""
+    digest = hashlib.sha1()
+    for source in sources:
+        with open(source, "rb") as f:
+            digest.update(f.read())
+    return digest.hexdigest()[:16]
 
 
 def array_digest(*arrays) -> str:
