@@ -35,6 +35,7 @@ from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_arm import demo_arm_scene
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.motion import farthest_pose_index
+from muscle_mss.core.settings import SolverSettings
 from muscle_mss.filters.collision_solver import solid_bones
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
 from muscle_mss.filters.scene_io import write_scene
@@ -52,7 +53,7 @@ def median_solve(model, prepared, bones, solids):
     runs = []
     for _ in range(REPEATS):
         tick = time.perf_counter()
-        result = S.solve(model, *bones, settings=S.SolverSettings(iterations=ITERATIONS),
+        result = S.solve(model, *bones, settings=SolverSettings.build(iterations=ITERATIONS),
                          prepared=prepared, bone_solids=solids)
         runs.append((time.perf_counter() - tick, result.phase_seconds["mss"],
                      result.phase_seconds["bone_cd"], int(result.bone_pairs[-1])))
@@ -87,7 +88,7 @@ def contact_rows(folder, scene, sizes):
             prepared_spheres = S.prepare(spheres_only)
             none = (None, None, None)
             for args, kind in ((bones, None), (none, solids)):    # compiled, warm
-                S.solve(model, *args, settings=S.SolverSettings(iterations=2),
+                S.solve(model, *args, settings=SolverSettings.build(iterations=2),
                         prepared=prepared, bone_solids=kind)
             spheres = median_solve(model, prepared, bones, None)
             row = [n, label, t, len(S.solid_points(prepared_spheres)),

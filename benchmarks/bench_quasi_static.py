@@ -25,6 +25,7 @@ import numpy as np
 from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import solver as S
 from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.settings import DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
 from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block, solid_bones
@@ -35,6 +36,11 @@ from bench_solver import machine, write_result
 
 POSES = (("walking", 0.35), ("most flexed", 0.75))
 
+
+
+def quasi_static(**values) -> SolverSettings:
+    """Quasi-static settings from flat keywords (:meth:`SolverSettings.build`)."""
+    return SolverSettings.build(method=METHOD_QUASI_STATIC, **values)
 
 def workload(pipeline, t):
     """The solver's inputs at time ``t`` as the filter builds them: the model, its bone spheres
@@ -68,17 +74,17 @@ def main(args):
                 Q.preconditioner(model, prepared)
                 factor_seconds = time.perf_counter() - tick
                 Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                        settings=Q.QuasiStaticSettings(iterations=2))   # compiled, warm
+                        settings=quasi_static(iterations=2))   # compiled, warm
             tick = time.perf_counter()
             default = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                              settings=Q.QuasiStaticSettings(iterations=args.cap))
+                              settings=quasi_static(iterations=args.cap))
             seconds = time.perf_counter() - tick
             tick = time.perf_counter()
             spheres = Q.solve(model, *bones, prepared=prepared,
-                              settings=Q.QuasiStaticSettings(iterations=args.cap))
+                              settings=quasi_static(iterations=args.cap))
             sphere_seconds = time.perf_counter() - tick
             tight = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                            settings=Q.QuasiStaticSettings(tolerance=Q.DEFAULT_TOLERANCE / 10,
+                            settings=quasi_static(tolerance=DEFAULT_TOLERANCE / 10,
                                                            iterations=args.tight_cap))
             tick = time.perf_counter()
             paper = S.solve(model, *bones, prepared=prepared)
@@ -97,7 +103,7 @@ def main(args):
         prepared = S.prepare(inputs[0][0])
         Q.preconditioner(inputs[0][0], prepared)
         for mode in ("cold", "warm"):
-            settings = Q.QuasiStaticSettings(iterations=args.walk_cap)
+            settings = quasi_static(iterations=args.walk_cap)
             last = None
             iterations, converged = 0, 0
             tick = time.perf_counter()
@@ -117,8 +123,8 @@ def main(args):
         "# Quasi-static solver benchmark (full demo thigh, issue 11)", "",
         f"Machine: {machine()}. The machine is shared: the load average (1 min) after "
         "each row is given.", "",
-        f"Default solve: Tolerance {Q.DEFAULT_TOLERANCE} mm, cap {args.cap} iterations, bones "
-        f"as solids (the filter's default). Tighter: Tolerance {Q.DEFAULT_TOLERANCE / 10} mm, "
+        f"Default solve: Tolerance {DEFAULT_TOLERANCE} mm, cap {args.cap} iterations, bones "
+        f"as solids (the filter's default). Tighter: Tolerance {DEFAULT_TOLERANCE / 10} mm, "
         f"cap {args.tight_cap}, solids. Sphere set: the default solve against the bones' "
         "sphere sets. Distances are per particle to the tighter solve, after the final "
         "collision passes, mean / max mm. Paper: the paper relaxation at its default 500 "

@@ -27,6 +27,7 @@ import numpy as np
 from muscle_mss.core import solver as S
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.settings import STRUCTURES, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block
 from muscle_mss.filters.motion_run import build_pipeline, update_at
@@ -95,9 +96,9 @@ def main(sizes):
         prepared = S.prepare(model)
         per_muscle = int(np.diff(model.offsets)[0])
         boundary = int(model.boundary.sum() / len(model.names))
-        for structure in S.STRUCTURES:
-            settings = S.SolverSettings(iterations=ITERATIONS, structure=structure)
-            S.solve(model, *bones, settings=S.SolverSettings(iterations=2, structure=structure),
+        for structure in STRUCTURES:
+            settings = SolverSettings.build(iterations=ITERATIONS, structure=structure)
+            S.solve(model, *bones, settings=SolverSettings.build(iterations=2, structure=structure),
                     prepared=prepared)
             runs = []
             for _ in range(REPEATS):

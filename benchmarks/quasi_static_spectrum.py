@@ -32,7 +32,7 @@ from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.filters.motion_run import build_pipeline
 from muscle_mss.filters.scene_io import write_scene
 
-from bench_quasi_static import workload
+from bench_quasi_static import quasi_static, workload
 from bench_solver import cpu_model, write_result
 
 
@@ -64,7 +64,7 @@ def rayleigh_quotients(model, bones, solids, cap):
     Q._History.add = watched
     try:
         result = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                         settings=Q.QuasiStaticSettings(iterations=cap))
+                         settings=quasi_static(iterations=cap))
     finally:
         Q._History.add = keep
     return np.array(quotients), result

@@ -78,17 +78,9 @@ from . import spatial_hash
 from .errors import MuscleMSSError
 from .bone_distance import BoneSolids, _sample, _to_rest, push_out_of_bones
 from .mss import _add_cage_gradient, _cage_volume
+from .settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, STRUCTURES, TERMINATION_BUDGET,
+                       TERMINATION_ITERATIONS, SolverSettings)
 
-DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a quasi-Newton step
-DEFAULT_HISTORY = 8             # L-BFGS pairs kept
-# The contact stiffness w as a multiple of the largest diagonal entry of L (the sum of the
-# stiffnesses of one particle's springs, 260 g/s^2 for a lattice-26 particle at the Spring
-# Builder's 10 g/s^2). Stiffer contacts leave less overlap for the final passes but are stiff
-# modes the Laplacian preconditioner does not know: on the full demo thigh at N = 20, walking
-# pose, 1.0 did not converge in 500 iterations, 0.3 converged in 398 (deepest overlap left for
-# the passes 0.19 mm); 0.1 and 0.03 did not converge either (more contacts slide).
-DEFAULT_CONTACT_WEIGHT = 0.3
-METHOD = "quasi-static"
 ARMIJO = 1e-4                   # sufficient decrease of the line search
 BACKTRACKS = 40                 # line search halvings before the solve gives up
 # Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
@@ -104,25 +96,6 @@ SKIN_FRACTION = 1.0             # contact list skin, times the mean muscle spher
 
 
 @dataclass
-class QuasiStaticSettings:
-    """The quasi-static solver's parameters (the filter's properties)."""
-
-    tolerance: float = DEFAULT_TOLERANCE            # mm
-    iterations: int = 500                           # cap
-    time_budget: float | None = None                # s, None: no budget
-    bulk_modulus: float = S.DEFAULT_BULK_MODULUS    # g/(mm s^2)
-    structure: str = "spatial hash"                 # of the final collision passes
-    bvh_max_depth: int = S.octree_bvh.MAX_DEPTH
-    bvh_min_primitives: int = S.octree_bvh.MIN_PRIMITIVES
-    muscle_muscle: bool = True
-    muscle_bone: bool = True
-    projection_passes: int = S.DEFAULT_PROJECTION_PASSES
-    penetration_tolerance: float = S.DEFAULT_PENETRATION_TOLERANCE    # mm
-    contact_weight: float = DEFAULT_CONTACT_WEIGHT
-    history: int = DEFAULT_HISTORY
-
-
-@dataclass
 class QuasiStaticResult(S.SolveResult):
     """:class:`~muscle_mss.core.solver.SolveResult` plus ``residual`` (K,) mm, the largest
     particle move of each iteration's quasi-Newton step, ``energy`` (K,) g mm^2/s^2 at the start
@@ -135,7 +108,7 @@ class QuasiStaticResult(S.SolveResult):
     residual: np.ndarray | None = None
     energy: np.ndarray | None = None
     converged: bool = False
-    method: str = METHOD
+    method: str = METHOD_QUASI_STATIC
 
 
 # ---- the constant part of the Hessian ----------------------------------------------------------
@@ -553,26 +526,27 @@ class _Energy:
 
 # ---- the driver ------------------------------------------------------------------------------
 
-def _check(settings: QuasiStaticSettings) -> None:
-    if settings.structure not in S.STRUCTURES:
+def _check(settings: SolverSettings) -> None:
+    if settings.structure not in STRUCTURES:
         raise MuscleMSSError(f"collision structure {settings.structure!r} is not one of "
-                             f"{', '.join(S.STRUCTURES)}")
+                             f"{', '.join(STRUCTURES)}")
     for name, value, least in (("iterations", settings.iterations, 1),
                                ("projection passes", settings.projection_passes, 0),
-                               ("history", settings.history, 0)):
+                               ("history", settings.quasi_static.history, 0)):
         if not (value >= least and int(value) == value):
             raise MuscleMSSError(f"solver {name} is {value}; it must be a whole number, "
                                  f"{least} or more")
-    for name, value in (("tolerance", settings.tolerance),
+    for name, value in (("tolerance", settings.quasi_static.tolerance),
                         ("penetration tolerance", settings.penetration_tolerance),
                         ("bulk modulus", settings.bulk_modulus)):
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
-    if not (settings.contact_weight > 0.0 and np.isfinite(settings.contact_weight)):
-        raise MuscleMSSError(f"solver contact weight is {settings.contact_weight}; it must be "
+    weight = settings.quasi_static.contact_weight
+    if not (weight > 0.0 and np.isfinite(weight)):
+        raise MuscleMSSError(f"solver contact weight is {weight}; it must be "
                              "finite and positive")
-    if settings.time_budget is not None and not settings.time_budget >= 0.0:
-        raise MuscleMSSError(f"solver time budget is {settings.time_budget}; it must be 0 or "
+    if settings.budget is not None and not settings.budget >= 0.0:
+        raise MuscleMSSError(f"solver time budget is {settings.budget}; it must be 0 or "
                              "more")
 
 
@@ -721,7 +695,7 @@ def _direction(gradient, history: _History, h0):
 
 
 def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
-          settings: QuasiStaticSettings | None = None, progress=None,
+          settings: SolverSettings | None = None, progress=None,
           prepared: S.PreparedModel | None = None, start=None,
           bone_solids: BoneSolids | None = None) -> QuasiStaticResult:
     """The static equilibrium of the posed model with contacts (see the module docstring).
@@ -732,8 +706,10 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     muscle-bone contacts of the minimisation (the bone spheres then serve the final collision
     passes only).
     """
-    settings = settings or QuasiStaticSettings()
+    settings = settings or SolverSettings(method=METHOD_QUASI_STATIC)
     _check(settings)
+    tolerance = settings.quasi_static.tolerance
+    budget = settings.budget
     if bone_solids is not None:
         bone_solids.check()
     S.check_history_size(settings.iterations, len(model.names))
@@ -758,7 +734,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     spheres, sphere_state = S.collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
     energy_of = _Energy(model, prep, pre, spheres, settings, x,
-                        float(settings.contact_weight) * pre.stiffest, bone_solids)
+                        float(settings.quasi_static.contact_weight) * pre.stiffest, bone_solids)
     step_limit = float(spheres.radius.max()) if ns else np.inf
     sizes = np.maximum(np.diff(offsets), 1)
 
@@ -775,10 +751,10 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     started = time.perf_counter()
     position = np.ascontiguousarray(x[:, free].T)
     energy, gradient, volume_gradient = energy_of.evaluate(position)
-    history = _History(int(settings.history), len(free))
+    history = _History(int(settings.quasi_static.history), len(free))
     done = 0
     converged_loop = False
-    stopped_by = "iterations"
+    stopped_by = TERMINATION_ITERATIONS
     while done < cap:
         muscle_pairs[done], bone_pairs[done], max_pen[done] = energy_of.contact_figures()
         energies[done] = energy
@@ -791,13 +767,12 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
                                  "particle's step is not finite; check stiffness and bulk "
                                  "modulus")
         residual[done] = largest
-        if largest <= settings.tolerance and not _settled(residual[:done + 1],
-                                                          settings.tolerance):
-            largest = max(largest, 2.0 * settings.tolerance)    # not yet: keep going
-        elif largest <= settings.tolerance and history:
+        if largest <= tolerance and not _settled(residual[:done + 1], tolerance):
+            largest = max(largest, 2.0 * tolerance)     # not yet: keep going
+        elif largest <= tolerance and history:
             # confirm with the plain step, which bounds the force
             plain = -h0(gradient)
-            if _largest_move(plain) > settings.tolerance:
+            if _largest_move(plain) > tolerance:
                 history.clear()
                 step, largest = plain, _largest_move(plain)
         slope = float(np.vdot(gradient, step))
@@ -808,7 +783,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             slope = float(np.vdot(gradient, step))
         solve_seconds += time.perf_counter() - tick
         done += 1
-        if largest <= settings.tolerance:
+        if largest <= tolerance:
             converged_loop = True
             stopped_by = "tolerance"
             seconds[done - 1] = time.perf_counter() - started
@@ -836,7 +811,7 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         moved = trial - position
         change = trial_gradient - gradient
         curvature = float(np.vdot(moved, change))
-        if settings.history and curvature > 1e-12 * float(np.linalg.norm(moved)
+        if settings.quasi_static.history and curvature > 1e-12 * float(np.linalg.norm(moved)
                                                            * np.linalg.norm(change)):
             history.add(moved, change, 1.0 / curvature)
         mean_move[done - 1] = np.bincount(free_muscle, np.sqrt(np.einsum(
@@ -844,8 +819,8 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         position, energy, gradient, volume_gradient = (trial, trial_energy, trial_gradient,
                                                        trial_volume)
         seconds[done - 1] = time.perf_counter() - started
-        if settings.time_budget is not None and seconds[done - 1] >= settings.time_budget:
-            stopped_by = "time budget"
+        if budget is not None and seconds[done - 1] >= budget:
+            stopped_by = TERMINATION_BUDGET
             break
         if progress is not None and progress(done / cap):
             raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
@@ -856,11 +831,9 @@ def solve(model: S.MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     if len(energy_of.solid_points):
         _push_out_of_solids(x, energy_of.solid_points, energy_of.solid_radius, bone_solids)
     # the final collision passes of the paper method remove the penalty's overlap
-    use_bvh = settings.structure == "octree BVH"
+    use_bvh = settings.structure == STRUCTURE_BVH
     hashed = S._hash_state(spheres, not use_bvh)
-    bvh = S._bvh_state(spheres, S.SolverSettings(
-        structure=settings.structure, bvh_max_depth=settings.bvh_max_depth,
-        bvh_min_primitives=settings.bvh_min_primitives))
+    bvh = S._bvh_state(spheres, settings)
     fixed_state, lists = hashed[:-5], hashed[-5:]
     solids = S.solid_arguments(bone_solids, x, prep)
     solid_collided = np.zeros(len(solids[12]), dtype=np.uint8)

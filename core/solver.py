@@ -55,33 +55,12 @@ from .errors import MuscleMSSError
 from .cage import muscle_cage
 from .mss import (Spheres, VolumeCages, lattice_order, make_spheres, muscle_step, now,
                   spring_layout)
+from .settings import (STRUCTURE_BVH, STRUCTURE_HASH, STRUCTURES, TERMINATION_BUDGET,
+                       TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS,
+                       SolverSettings)
 from .volume import signed_volume
 
 
-TERMINATIONS = ("iterations", "displacement threshold", "time budget")
-STRUCTURES = ("spatial hash", "octree BVH")
-# Stable with margin for the Spring Builder defaults (k = 10 g/s^2, c = 0.5 g/s, m = 1 g) and
-# lattice-26: a particle's stiffest mode is below sqrt(2 * 26 * k / m) ~ 23 rad/s, and
-# symplectic Euler needs omega * dt < 2; 0.05 s gives 1.1 in that worst case.
-DEFAULT_TIME_STEP = 0.05
-# Measured on the small and full demo at the pose farthest from rest (issue 5): without drag
-# the lattices ring for the whole solve (damping ratio c / (2 sqrt(k m)) = 0.08 per spring) and
-# fold; 5 1/s damps the slow modes of a 20-particle fibre within ~100 iterations.
-DEFAULT_DRAG = 5.0
-# Without a volume force the converged lattices lose 9-22 % of their volume where the posed
-# fibres are stretched ~10 % (lattice-26 cells 2.5 times longer than wide narrow several
-# times faster than they stretch); 5 g/(mm s^2) keeps the cage volumes within ~3 %. Muscle is
-# nearly incompressible, and the volume term's stiff mode is implicit (mss._implicit_volume_forces),
-# so a stiff term does not shorten the stable TimeStep. On the full elbow demo at 130 deg (bones
-# as solids) the triceps medial head, its fibres stretched 30 %, keeps its cage within -4.4 %
-# at 50 and -2.1 % at 200 (surface volume error 6.7 -> 4.8 %); 1000 gains little more (4.2 %)
-# because the rest of the surface's error is the MVC map's and the bone push's, not the cage's.
-DEFAULT_BULK_MODULUS = 200.0
-# The final collision passes (:func:`_project`): a sphere pressed between two objects keeps
-# half its overlap per pass (two passes halve it), so 100 passes leave any overlap below 1e-15
-# of itself; they stop as soon as the deepest penetration is below the tolerance.
-DEFAULT_PROJECTION_PASSES = 100
-DEFAULT_PENETRATION_TOLERANCE = 0.01    # mm
 STALLED_PASSES = 10
 PROGRESS = 0.95
 CHUNK_SECONDS = 0.1
@@ -123,26 +102,6 @@ class MSSModel:
 
 
 @dataclass
-class SolverSettings:
-    """The solver's parameters (the filter's properties)."""
-
-    termination: str = "iterations"
-    iterations: int = 500
-    displacement_threshold: float = 1e-3    # mm per iteration
-    time_budget: float = 1.0                # s
-    time_step: float = DEFAULT_TIME_STEP    # s
-    drag: float = DEFAULT_DRAG              # 1/s
-    bulk_modulus: float = DEFAULT_BULK_MODULUS  # g/(mm s^2)
-    structure: str = "spatial hash"
-    bvh_max_depth: int = octree_bvh.MAX_DEPTH
-    bvh_min_primitives: int = octree_bvh.MIN_PRIMITIVES
-    muscle_muscle: bool = True
-    muscle_bone: bool = True
-    projection_passes: int = DEFAULT_PROJECTION_PASSES
-    penetration_tolerance: float = DEFAULT_PENETRATION_TOLERANCE    # mm
-
-
-@dataclass
 class SolveResult:
     """Solved state (input particle order) and the per-iteration history.
 
@@ -168,7 +127,7 @@ class SolveResult:
     max_penetration: np.ndarray
     seconds: np.ndarray
     phase_seconds: dict = field(default_factory=dict)
-    stopped_by: str = "iterations"
+    stopped_by: str = TERMINATION_ITERATIONS
     rebuilds: int = 0
     projection_passes: int = 0
     remaining_penetration: float = 0.0
@@ -655,13 +614,14 @@ def _check_settings(settings: SolverSettings) -> None:
         raise MuscleMSSError(f"solver projection passes is {settings.projection_passes}; it "
                              "must be a whole number, 0 or more")
     for name, value in (("iterations", settings.iterations),
-                        ("time step", settings.time_step),
+                        ("time step", settings.relaxation.time_step),
                         ("BVH max depth", settings.bvh_max_depth),
                         ("BVH min primitives", settings.bvh_min_primitives)):
         if not value > 0:
             raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
-    for name, value in (("displacement threshold", settings.displacement_threshold),
-                        ("time budget", settings.time_budget), ("drag", settings.drag),
+    for name, value in (("displacement threshold", settings.relaxation.displacement_threshold),
+                        ("time budget", settings.time_budget),
+                        ("drag", settings.relaxation.drag),
                         ("penetration tolerance", settings.penetration_tolerance),
                         ("bulk modulus", settings.bulk_modulus)):
         if not (value >= 0.0 and np.isfinite(value)):
@@ -826,7 +786,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     if bone_solids is not None:
         bone_solids.check()
     prep = prepared if prepared is not None else prepare(model)
-    problem = stability_problem(model, settings.time_step, prep.stable_step)
+    problem = stability_problem(model, settings.relaxation.time_step, prep.stable_step)
     if problem:
         raise MuscleMSSError(problem)
     check_history_size(settings.iterations, len(model.names))
@@ -837,22 +797,24 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     x = np.ascontiguousarray(posed.T)
     v = np.zeros_like(x)
     work = np.zeros((3, 3, n))
-    mss = ((x, v, work[0], work[1], work[2], prep.inv_mass, float(settings.time_step),
-            float(settings.drag), float(settings.bulk_modulus)) + prep.cages.arrays
+    relaxation = settings.relaxation
+    mss = ((x, v, work[0], work[1], work[2], prep.inv_mass, float(relaxation.time_step),
+            float(relaxation.drag), float(settings.bulk_modulus)) + prep.cages.arrays
            + (offsets,) + prep.layout.arrays)
 
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     ns = spheres.count
     solids = solid_arguments(bone_solids, x, prep)
-    hashed = _hash_state(spheres, settings.structure == "spatial hash")
+    hashed = _hash_state(spheres, settings.structure == STRUCTURE_HASH)
     bvh = _bvh_state(spheres, settings)
 
     cap = int(settings.iterations)
     history = (np.zeros((cap, n_muscles)), np.zeros(cap, dtype=np.int64),
                np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap), np.zeros(4))
-    control = (settings.structure == "octree BVH",
+    control = (settings.structure == STRUCTURE_BVH,
                bool(settings.muscle_muscle), bool(settings.muscle_bone),
-               TERMINATIONS.index(settings.termination), float(settings.displacement_threshold),
+               TERMINATIONS.index(settings.termination),
+               float(relaxation.displacement_threshold),
                float(settings.time_budget),
                _divergence_limits(posed, offsets, 2.0 * (max(spheres.radius, default=0.0)
                                                          + max(spheres.bone_radius, default=0.0))
@@ -878,9 +840,9 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             raise MuscleMSSError(
                 f"muscle '{model.names[bad]}' diverged at iteration {done}: its mean particle "
                 f"displacement was {history[0][done - 1, bad]:.3g} mm in one iteration; lower "
-                f"the TimeStep (now {settings.time_step} s) or check stiffness and mass")
+                f"the TimeStep (now {relaxation.time_step} s) or check stiffness and mass")
         fraction = done / cap
-        if settings.termination == "time budget" and settings.time_budget > 0:
+        if settings.termination == TERMINATION_BUDGET and settings.time_budget > 0:
             fraction = max(fraction, history[4][done - 1] / settings.time_budget)
         if progress is not None and status == RUNNING and done < cap and progress(fraction):
             raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
@@ -902,8 +864,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     collided = np.zeros(n, dtype=bool)
     collided[spheres.particle] = collided_spheres > 0
     collided[solids[12]] |= solid_collided > 0
-    stopped_by = {RUNNING: "iterations", CONVERGED: "displacement threshold",
-                  OUT_OF_TIME: "time budget"}[status]
+    stopped_by = {RUNNING: TERMINATION_ITERATIONS, CONVERGED: TERMINATION_THRESHOLD,
+                  OUT_OF_TIME: TERMINATION_BUDGET}[status]
     return SolveResult(
         x.T[rank].copy(), v.T[rank].copy(), collided[rank], mean_disp[:done].copy(),
         muscle_pairs[:done].copy(), bone_pairs[:done].copy(), max_pen[:done].copy(),
@@ -968,7 +930,7 @@ def _hash_state(spheres: Spheres, used: bool) -> tuple:
 
 
 def _bvh_state(spheres: Spheres, settings: SolverSettings) -> tuple:
-    if settings.structure == "octree BVH":
+    if settings.structure == STRUCTURE_BVH:
         tree = octree_bvh.octree_bvh(spheres, int(settings.bvh_max_depth),
                                      int(settings.bvh_min_primitives))
     else:

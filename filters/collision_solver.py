@@ -60,6 +60,13 @@ from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.cage import fibre_polylines
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.settings import (
+    DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_BVH_MIN_PRIMITIVES,
+    DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS, DEFAULT_METHOD,
+    DEFAULT_PENETRATION_TOLERANCE, DEFAULT_PROJECTION_PASSES, DEFAULT_TIME_BUDGET,
+    DEFAULT_TIME_STEP, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, METHODS, STRUCTURE_HASH,
+    STRUCTURES, TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS, QuasiStaticSettings,
+    RelaxationSettings, SolverSettings)
 
 from . import array_names as A
 from .bone_sets import bone_depths, bone_solids, bone_sphere_set, particles_in_bones
@@ -73,7 +80,6 @@ BONES = "PosedBones"
 POINT_ARRAYS = (A.REST_POSITION, A.FIBRE_ID, A.FIBRE_INDEX, A.FIXED, A.BOUNDARY, A.RADIUS, A.MASS)
 CELL_ARRAYS = (A.REST_LENGTH, A.STIFFNESS, A.DAMPING)
 MEAN_DISPLACEMENT = "mean_displacement_"
-METHODS = (Q.METHOD, "paper relaxation")
 BONE_CONTACTS = ("solid", "sphere set")
 
 
@@ -173,7 +179,7 @@ class MSSCollisionSolver(MuscleFilter):
                     "One row per iteration: mean displacement per muscle, colliding pairs, "
                     "max penetration, seconds."))
     PROPERTIES = (
-        Property("Method", "enum", "paper relaxation",
+        Property("Method", "enum", DEFAULT_METHOD,
                  "quasi-static: solve for the static equilibrium of the springs, volume "
                  "pressure, fixed tendon particles and contacts to Tolerance (energy "
                  "minimisation by L-BFGS on a spring matrix factorised once per model, contacts "
@@ -183,7 +189,7 @@ class MSSCollisionSolver(MuscleFilter):
                  "relaxation (the default): the paper's explicit iterations (mass-spring step, "
                  "collision response) with the terminations below.",
                  choices=METHODS, group="Method"),
-        Property("Tolerance", "double", Q.DEFAULT_TOLERANCE,
+        Property("Tolerance", "double", DEFAULT_TOLERANCE,
                  "Quasi-static: the solve has converged when no particle moves more than this "
                  "(mm) in one quasi-Newton step, nor (estimated from how fast the steps "
                  "shrink) in all the steps still to come, and no two objects overlap by more than "
@@ -196,52 +202,52 @@ class MSSCollisionSolver(MuscleFilter):
                  "and the properties are the same and only the pose changed (the next time "
                  "step); off: always start from the posed particles.",
                  group="Method"),
-        Property("Termination", "enum", "iterations",
+        Property("Termination", "enum", TERMINATION_ITERATIONS,
                  "When to stop. iterations: after Iterations iterations. displacement threshold: "
                  "when every muscle's mean particle displacement of an iteration is below "
                  "DisplacementThreshold and no longer rising. time budget: when TimeBudget "
                  "seconds have passed. Iterations caps all three.",
-                 choices=S.TERMINATIONS, group="Termination"),
-        Property("Iterations", "int", 500,
+                 choices=TERMINATIONS, group="Termination"),
+        Property("Iterations", "int", DEFAULT_ITERATIONS,
                  "Number of iterations (the cap for every termination).",
                  minimum=1, group="Termination"),
-        Property("DisplacementThreshold", "double", 1e-3,
+        Property("DisplacementThreshold", "double", DEFAULT_DISPLACEMENT_THRESHOLD,
                  "Mean particle displacement of one iteration (mm) below which a muscle counts "
                  "as at rest (termination 'displacement threshold').",
                  minimum=0.0, group="Termination"),
-        Property("TimeBudget", "double", 1.0,
+        Property("TimeBudget", "double", DEFAULT_TIME_BUDGET,
                  "Wall-clock seconds for the solve (termination 'time budget').",
                  minimum=0.0, group="Termination"),
-        Property("TimeStep", "double", S.DEFAULT_TIME_STEP,
+        Property("TimeStep", "double", DEFAULT_TIME_STEP,
                  "Time step of the semi-implicit Euler integration (s). The default is stable "
                  "with margin for the Spring Builder's defaults (stiffness 10 g/s^2, damping "
                  "0.5 g/s, mass 1 g) and lattice-26 springs; lower it for stiffer springs or "
                  "lighter particles (stability needs about dt < 2 sqrt(m / (2 n k)) for n "
                  "springs per particle).",
                  minimum=1e-9, group="Integration"),
-        Property("Drag", "double", S.DEFAULT_DRAG,
+        Property("Drag", "double", DEFAULT_DRAG,
                  "Viscous drag on every particle's velocity (1/s): the force -Drag m v, taken "
                  "implicitly so that it is stable at any strength. It makes the relaxation settle "
                  "(the springs' own damping is explicit and must stay small to be stable); 0 "
                  "turns it off (the paper's plain mass-spring system).",
                  minimum=0.0, group="Integration"),
-        Property("BulkModulus", "double", S.DEFAULT_BULK_MODULUS,
+        Property("BulkModulus", "double", DEFAULT_BULK_MODULUS,
                  "Resistance of each muscle to a change of its volume (g/(mm s^2), a pressure): "
                  "the boundary particles' cage (the one that carries the surface) is pushed "
                  "outwards by -BulkModulus (V / V_rest - 1) per unit of its area. Muscle is "
                  "nearly incompressible, a spring lattice is not: without it a stretched lattice "
                  "narrows and loses volume. 0 turns it off (the paper's springs only).",
                  minimum=0.0, group="Integration"),
-        Property("CollisionStructure", "enum", "spatial hash",
+        Property("CollisionStructure", "enum", STRUCTURE_HASH,
                  "How colliding spheres are found. spatial hash: a uniform grid with candidate "
                  "lists, parallel (the fast default). octree BVH: the paper's per-object octree "
                  "of bounding boxes, refitted and lazily subdivided, on one thread. Both find "
                  "the same pairs.",
-                 choices=S.STRUCTURES, group="Collisions"),
-        Property("BVHMaxDepth", "int", 8,
+                 choices=STRUCTURES, group="Collisions"),
+        Property("BVHMaxDepth", "int", DEFAULT_BVH_MAX_DEPTH,
                  "Octree BVH: deepest subdivision level (the paper's 8).",
                  minimum=1, maximum=20, group="Collisions"),
-        Property("BVHMinPrimitives", "int", 10,
+        Property("BVHMinPrimitives", "int", DEFAULT_BVH_MIN_PRIMITIVES,
                  "Octree BVH: a node with this many spheres or fewer is not subdivided (the "
                  "paper's 10).", minimum=1, group="Collisions"),
         Property("MuscleMuscle", "bool", True,
@@ -249,14 +255,14 @@ class MSSCollisionSolver(MuscleFilter):
         Property("MuscleBone", "bool", True,
                  "Handle collisions between muscle spheres and bone spheres.",
                  group="Collisions"),
-        Property("ProjectionPasses", "int", S.DEFAULT_PROJECTION_PASSES,
+        Property("ProjectionPasses", "int", DEFAULT_PROJECTION_PASSES,
                  "Collision passes (detection and response, no spring update) after the last "
                  "iteration, until no two spheres of different objects overlap by more than "
                  "PenetrationTolerance. A sphere pressed between two objects keeps half its "
                  "overlap after one response, and the springs push it back in every iteration; "
                  "these passes remove what is left. 0 turns them off (the paper's loop).",
                  minimum=0, group="Collisions"),
-        Property("PenetrationTolerance", "double", S.DEFAULT_PENETRATION_TOLERANCE,
+        Property("PenetrationTolerance", "double", DEFAULT_PENETRATION_TOLERANCE,
                  "Deepest overlap (mm) of two spheres of different objects at which the final "
                  "collision passes stop.", minimum=0.0, group="Collisions"),
         Property("BoneContact", "enum", BONE_CONTACTS[0],
@@ -291,19 +297,21 @@ class MSSCollisionSolver(MuscleFilter):
         self._static = (None, None)
         self.setup_counts = {"checked": 0, "remembered": 0}
 
-    def settings(self) -> S.SolverSettings:
-        """The properties as the core's :class:`SolverSettings`."""
-        return S.SolverSettings(
-            termination=self.choice("Termination"), iterations=self.value("Iterations"),
-            displacement_threshold=self.value("DisplacementThreshold"),
-            time_budget=self.value("TimeBudget"), time_step=self.value("TimeStep"),
-            drag=self.value("Drag"), bulk_modulus=self.value("BulkModulus"),
-            structure=self.choice("CollisionStructure"),
+    def settings(self) -> SolverSettings:
+        """The properties as the core's :class:`~muscle_mss.core.settings.SolverSettings`."""
+        return SolverSettings(
+            method=self.choice("Method"), termination=self.choice("Termination"),
+            iterations=self.value("Iterations"), time_budget=self.value("TimeBudget"),
+            bulk_modulus=self.value("BulkModulus"), structure=self.choice("CollisionStructure"),
             bvh_max_depth=self.value("BVHMaxDepth"),
             bvh_min_primitives=self.value("BVHMinPrimitives"),
             muscle_muscle=self.value("MuscleMuscle"), muscle_bone=self.value("MuscleBone"),
             projection_passes=self.value("ProjectionPasses"),
-            penetration_tolerance=self.value("PenetrationTolerance"))
+            penetration_tolerance=self.value("PenetrationTolerance"),
+            relaxation=RelaxationSettings(
+                displacement_threshold=self.value("DisplacementThreshold"),
+                time_step=self.value("TimeStep"), drag=self.value("Drag")),
+            quasi_static=QuasiStaticSettings(tolerance=self.value("Tolerance")))
 
     def execute(self, inputs, outputs):
         blocks = V.blocks(inputs[0], where=MODEL)
@@ -347,7 +355,7 @@ class MSSCollisionSolver(MuscleFilter):
         V.set_field(outputs[1], A.PROJECTION_PASSES, result.projection_passes)
         V.set_field(outputs[1], A.REMAINING_PENETRATION, result.remaining_penetration)
         converged = (result.converged if quasi_static
-                     else result.stopped_by == "displacement threshold")
+                     else result.stopped_by == TERMINATION_THRESHOLD)
         V.set_field(outputs[1], A.CONVERGED, int(converged))
         V.set_field(outputs[1], A.METHOD, self.choice("Method"))
         if quasi_static and not converged:
@@ -364,30 +372,16 @@ class MSSCollisionSolver(MuscleFilter):
                 "Tolerance\n")
         self.progress(1.0)
 
-    def quasi_static_settings(self) -> Q.QuasiStaticSettings:
-        """The properties as the quasi-static solver's :class:`QuasiStaticSettings`."""
-        budget = (self.value("TimeBudget") if self.choice("Termination") == "time budget"
-                  else None)
-        return Q.QuasiStaticSettings(
-            tolerance=self.value("Tolerance"), iterations=self.value("Iterations"),
-            time_budget=budget, bulk_modulus=self.value("BulkModulus"),
-            structure=self.choice("CollisionStructure"),
-            bvh_max_depth=self.value("BVHMaxDepth"),
-            bvh_min_primitives=self.value("BVHMinPrimitives"),
-            muscle_muscle=self.value("MuscleMuscle"), muscle_bone=self.value("MuscleBone"),
-            projection_passes=self.value("ProjectionPasses"),
-            penetration_tolerance=self.value("PenetrationTolerance"))
-
     def _solve(self, model: S.MSSModel, bones, solids, prepared: S.PreparedModel):
         """The chosen method's solve against the bone spheres ``bones`` (``(centres, radii,
         bone)`` or Nones) or the bones as solids ``solids``; the quasi-static one warm started
         from the last solution when the model (topology, rest state) and the properties are
         unchanged."""
         progress = lambda f: self.progress(0.05 + 0.9 * f)  # noqa: E731
-        if self.choice("Method") != Q.METHOD:
-            return S.solve(model, *bones, settings=self.settings(), progress=progress,
+        settings = self.settings()
+        if settings.method != METHOD_QUASI_STATIC:
+            return S.solve(model, *bones, settings=settings, progress=progress,
                            prepared=prepared, bone_solids=solids)
-        settings = self.quasi_static_settings()
         key = (self._prepared_key, repr(settings), self.value("BoneSphereSpacing"),
                self.choice("BoneContact"))
         start = None

@@ -9,6 +9,9 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import solver as S
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_CONTACT_WEIGHT,
+                                      DEFAULT_PENETRATION_TOLERANCE, DEFAULT_TOLERANCE,
+                                      METHOD_QUASI_STATIC, SolverSettings)
 from muscle_mss.filters import MSSCollisionSolver
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
@@ -17,7 +20,13 @@ from test_filter_solver import posed_at
 from test_mss import lattice
 
 
+def quasi_static(**values) -> SolverSettings:
+    """Quasi-static settings from flat keywords (:meth:`SolverSettings.build`)."""
+    return SolverSettings.build(method=METHOD_QUASI_STATIC, **values)
+
+
 # ---- the slow obvious reference: energy and forces of the model in plain NumPy -----------------
+
 
 def reference_forces(model, positions, bulk_modulus):
     """(n, 3) spring + volume-pressure force on every particle (g mm/s^2), one spring and one
@@ -90,8 +99,8 @@ def minimise_reference(model, bone, weight):
 def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     model, bone = chain_on_a_ball()
     prep = S.prepare(model)
-    weight = Q.DEFAULT_CONTACT_WEIGHT * Q.preconditioner(model, prep).stiffest
-    result = Q.solve(model, *bone, prepared=prep, settings=Q.QuasiStaticSettings(
+    weight = DEFAULT_CONTACT_WEIGHT * Q.preconditioner(model, prep).stiffest
+    result = Q.solve(model, *bone, prepared=prep, settings=SolverSettings.build(method=METHOD_QUASI_STATIC,
         tolerance=1e-9, iterations=5000, projection_passes=0))
     assert result.converged and result.residual[-1] < 1e-9
     assert result.collided.any()
@@ -124,10 +133,10 @@ def test_equilibrium_net_force_on_free_particles_is_below_the_tolerance_equivale
     prep = S.prepare(model)
     assert prep.cages.ptr[-1] > 0                       # the volume term is in play
     tolerance = 1e-4
-    result = Q.solve(model, prepared=prep, settings=Q.QuasiStaticSettings(
+    result = Q.solve(model, prepared=prep, settings=SolverSettings.build(method=METHOD_QUASI_STATIC,
         tolerance=tolerance, iterations=3000))
     assert result.converged and result.stopped_by == "tolerance"
-    force = reference_forces(model, result.positions, S.DEFAULT_BULK_MODULUS)
+    force = reference_forces(model, result.positions, DEFAULT_BULK_MODULUS)
     free = ~model.fixed
     # the plain step (A + K)^-1 f moves no particle more than the tolerance, so |f| <= |A + K|
     # tolerance: |A| is at most twice the largest sum of a particle's stiffnesses (K acts along
@@ -136,7 +145,7 @@ def test_equilibrium_net_force_on_free_particles_is_below_the_tolerance_equivale
     bound = 2 * diagonal.max() * tolerance
     assert np.linalg.norm(force[free], axis=1).max() < bound
     # and it is not trivially so: the posed state is far from balanced
-    posed_force = reference_forces(model, model.positions, S.DEFAULT_BULK_MODULUS)
+    posed_force = reference_forces(model, model.positions, DEFAULT_BULK_MODULUS)
     assert np.linalg.norm(posed_force[free], axis=1).max() > 1000 * bound
     assert np.array_equal(result.positions[model.fixed], model.positions[model.fixed])
 
@@ -150,7 +159,7 @@ def test_model_at_rest_stays_at_rest(stretched):
 
 
 def test_iteration_cap_times_ten_gives_the_same_particles_once_converged(stretched):
-    settings = Q.QuasiStaticSettings(tolerance=1e-3, iterations=400)
+    settings = quasi_static(tolerance=1e-3, iterations=400)
     a = Q.solve(stretched, settings=settings)
     settings.iterations = 4000
     b = Q.solve(stretched, settings=settings)
@@ -165,7 +174,7 @@ def test_iteration_cap_times_ten_gives_the_same_particles_once_converged(stretch
 
 
 def test_warm_start_and_cold_start_agree(stretched):
-    settings = Q.QuasiStaticSettings(tolerance=1e-4, iterations=3000)
+    settings = quasi_static(tolerance=1e-4, iterations=3000)
     cold = Q.solve(stretched, settings=settings)
     # start from the solution of a nearby pose carried by the pose change
     nearby = S.MSSModel(**{**stretched.__dict__, "positions": stretched.positions.copy()})
@@ -182,13 +191,13 @@ def test_warm_start_and_cold_start_agree(stretched):
 
 def test_bad_settings_and_start_are_refused(stretched):
     with pytest.raises(MuscleMSSError, match="tolerance is -1"):
-        Q.solve(stretched, settings=Q.QuasiStaticSettings(tolerance=-1.0))
+        Q.solve(stretched, settings=quasi_static(tolerance=-1.0))
     with pytest.raises(MuscleMSSError, match="contact weight"):
-        Q.solve(stretched, settings=Q.QuasiStaticSettings(contact_weight=0.0))
+        Q.solve(stretched, settings=quasi_static(contact_weight=0.0))
     with pytest.raises(MuscleMSSError, match="start positions"):
         Q.solve(stretched, start=np.zeros((3, 3)))
     before = stretched.positions.copy()
-    Q.solve(stretched, settings=Q.QuasiStaticSettings(iterations=3))
+    Q.solve(stretched, settings=quasi_static(iterations=3))
     assert np.array_equal(before, stretched.positions)
 
 
@@ -217,7 +226,7 @@ def test_filter_quasi_static_method_has_residual_and_converged_fields(walk):
     solver = MSSCollisionSolver()
     assert solver.choice("Method") == "paper relaxation" and solver.GetWarmStart()
     solver.SetMethod("quasi-static")
-    assert solver.GetTolerance() == Q.DEFAULT_TOLERANCE
+    assert solver.GetTolerance() == DEFAULT_TOLERANCE
     out, table = filter_solve(solver, *walk[0])
     columns = V.table_columns(table)
     assert "residual" in columns and len(columns["residual"]) == len(columns["iteration"])
@@ -227,8 +236,8 @@ def test_filter_quasi_static_method_has_residual_and_converged_fields(walk):
     residual = columns["residual"]
     if converged:
         # stopped by the tolerance: the last step and the steps still to come below it
-        assert residual[-1] < Q.DEFAULT_TOLERANCE and remaining <= 0.01
-        assert Q.distance_to_go(residual) < Q.DEFAULT_TOLERANCE and len(residual) < 500
+        assert residual[-1] < DEFAULT_TOLERANCE and remaining <= 0.01
+        assert Q.distance_to_go(residual) < DEFAULT_TOLERANCE and len(residual) < 500
     else:
         assert len(residual) == 500 or remaining > 0.01
     paper = MSSCollisionSolver()
@@ -307,7 +316,7 @@ def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
     model, box, solids, inside = chain_in_a_box(3.0)
     clearance = solids.clearance[0]
     assert inside.sum() == 8 and not (inside & model.fixed).any()
-    result = Q.solve(model, settings=Q.QuasiStaticSettings(tolerance=1e-4, iterations=3000),
+    result = Q.solve(model, settings=quasi_static(tolerance=1e-4, iterations=3000),
                      bone_solids=solids)
     assert result.converged
     free = ~model.fixed
@@ -323,7 +332,7 @@ def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(mo
     clearance and skin when the list was made, remade when one moved half the skin): the
     solve is bitwise the one that looks at every particle every time."""
     model, _, solids, _ = chain_in_a_box(3.0)
-    settings = Q.QuasiStaticSettings(tolerance=1e-4, iterations=3000)
+    settings = quasi_static(tolerance=1e-4, iterations=3000)
     listed_sizes = []
     refresh = Q._Energy._refresh_near_solids
 
@@ -355,8 +364,8 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
     model, box, solids, inside = chain_in_a_box(1.0)
     clearance = solids.clearance[0]
     assert inside.sum() == 4 and not (inside & model.fixed).any()
-    result = S.solve(model, settings=S.SolverSettings(iterations=300), bone_solids=solids)
-    slack = S.DEFAULT_PENETRATION_TOLERANCE
+    result = S.solve(model, settings=SolverSettings.build(iterations=300), bone_solids=solids)
+    slack = DEFAULT_PENETRATION_TOLERANCE
     assert result.bone_pairs[0] > 0 and result.remaining_penetration <= slack
     free = result.positions[~model.fixed]
     assert signed_distances(solids.fields, free)[0].min() >= 0.8 + clearance - slack

@@ -4,6 +4,7 @@ import pytest
 
 from muscle_mss.core import solver, spatial_hash
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.settings import STRUCTURES, SolverSettings
 
 from test_mss import lattice
 
@@ -34,7 +35,7 @@ def pressed():
 
 def run(pressed, **kw):
     model, bones = pressed
-    return solver.solve(model, *bones, settings=solver.SolverSettings(**kw))
+    return solver.solve(model, *bones, settings=SolverSettings.build(**kw))
 
 
 def test_fixed_iterations_give_one_row_each(pressed):
@@ -112,7 +113,7 @@ def test_divergence_names_the_muscle(pressed):
         run(pressed, iterations=300, time_step=0.95 * solver.STABILITY_MARGIN * dt)
 
 
-@pytest.mark.parametrize("structure", solver.STRUCTURES)
+@pytest.mark.parametrize("structure", STRUCTURES)
 @pytest.mark.parametrize("length, moved", [(1e9, r"\d.*e\+0\d"), (np.inf, "(inf|nan)")])
 def test_a_sphere_thrown_out_of_the_scene_stops_before_collision_detection(
         pressed, structure, length, moved):
@@ -126,7 +127,7 @@ def test_a_sphere_thrown_out_of_the_scene_stops_before_collision_detection(
     thrown = solver.MSSModel(**{**model.__dict__, "rest_length": rest})
     with pytest.raises(MuscleMSSError, match=r"muscle 'front' diverged at iteration 1: its mean "
                        rf"particle displacement was {moved} mm"):
-        solver.solve(thrown, *bones, settings=solver.SolverSettings(iterations=5,
+        solver.solve(thrown, *bones, settings=SolverSettings.build(iterations=5,
                                                                     structure=structure))
 
 
@@ -156,11 +157,11 @@ def test_a_time_step_far_beyond_the_stable_one_is_refused_up_front(pressed):
         run(pressed, time_step=2.0)
     light = solver.MSSModel(**{**model.__dict__, "mass": np.full(len(model.mass), 1e-8)})
     with pytest.raises(MuscleMSSError, match="mass 1e-08 g"):
-        solver.solve(light, settings=solver.SolverSettings())
+        solver.solve(light, settings=SolverSettings.build())
     stiff = solver.MSSModel(**{**model.__dict__, "stiffness": np.full(len(model.stiffness), 1e9)})
     with pytest.raises(MuscleMSSError, match="springs of total stiffness 2.6e\\+10 g/s\\^2.*lower its "
                        "Stiffness"):
-        solver.solve(stiff, settings=solver.SolverSettings())
+        solver.solve(stiff, settings=SolverSettings.build())
     # a centre particle of the lattice: 26 springs of damping 0.5 g/s, 2 / (26 (1 + 1))
     assert solver.stable_time_step(model) == (pytest.approx(2 / 26), 0, 34, "damping")
 
@@ -180,7 +181,7 @@ def test_abort_between_chunks(pressed):
 
     model, bones = pressed
     with pytest.raises(MuscleMSSError, match="stopped by the user"):
-        solver.solve(model, *bones, settings=solver.SolverSettings(iterations=10 ** 5),
+        solver.solve(model, *bones, settings=SolverSettings.build(iterations=10 ** 5),
                      progress=progress)
     assert len(calls) == 1 and 0 < calls[0] < 1
 

@@ -1,0 +1,144 @@
+"""The MSS Collision Solver's settings: one type for both methods, every default and every option
+value defined once.
+
+:class:`SolverSettings` holds what both methods read (iteration cap, volume pressure, contacts,
+final collision passes); its :attr:`~SolverSettings.relaxation` part is read only by the paper's
+relaxation (:mod:`muscle_mss.core.relaxation`), its :attr:`~SolverSettings.quasi_static` part only
+by the quasi-static method (:mod:`muscle_mss.core.quasi_static`). The filter's properties, the
+CLI's and the batch's options take their defaults and choices from here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+from .octree_bvh import MAX_DEPTH as DEFAULT_BVH_MAX_DEPTH
+from .octree_bvh import MIN_PRIMITIVES as DEFAULT_BVH_MIN_PRIMITIVES
+
+# ---- option values ---------------------------------------------------------------------------
+
+METHOD_QUASI_STATIC = "quasi-static"
+METHOD_RELAXATION = "paper relaxation"
+METHODS = (METHOD_QUASI_STATIC, METHOD_RELAXATION)
+
+TERMINATION_ITERATIONS = "iterations"
+TERMINATION_THRESHOLD = "displacement threshold"
+TERMINATION_BUDGET = "time budget"
+TERMINATIONS = (TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATION_BUDGET)
+
+STRUCTURE_HASH = "spatial hash"
+STRUCTURE_BVH = "octree BVH"
+STRUCTURES = (STRUCTURE_HASH, STRUCTURE_BVH)
+
+# ---- defaults shared by both methods ---------------------------------------------------------
+
+DEFAULT_METHOD = METHOD_RELAXATION
+DEFAULT_ITERATIONS = 500
+DEFAULT_TIME_BUDGET = 1.0               # s
+# Without a volume force the converged lattices lose 9-22 % of their volume where the posed
+# fibres are stretched ~10 % (lattice-26 cells 2.5 times longer than wide narrow several
+# times faster than they stretch); 5 g/(mm s^2) keeps the cage volumes within ~3 %. Muscle is
+# nearly incompressible, and the volume term's stiff mode is implicit (mss._implicit_volume_forces),
+# so a stiff term does not shorten the stable TimeStep. On the full elbow demo at 130 deg (bones
+# as solids) the triceps medial head, its fibres stretched 30 %, keeps its cage within -4.4 %
+# at 50 and -2.1 % at 200 (surface volume error 6.7 -> 4.8 %); 1000 gains little more (4.2 %)
+# because the rest of the surface's error is the MVC map's and the bone push's, not the cage's.
+DEFAULT_BULK_MODULUS = 200.0            # g/(mm s^2)
+# The final collision passes (:func:`muscle_mss.core.contacts.project`): a sphere pressed
+# between two objects keeps half its overlap per pass (two passes halve it), so 100 passes leave
+# any overlap below 1e-15 of itself; they stop as soon as the deepest penetration is below the
+# tolerance.
+DEFAULT_PROJECTION_PASSES = 100
+DEFAULT_PENETRATION_TOLERANCE = 0.01    # mm
+
+# ---- defaults of the paper relaxation --------------------------------------------------------
+
+DEFAULT_DISPLACEMENT_THRESHOLD = 1e-3   # mm per iteration
+# Stable with margin for the Spring Builder defaults (k = 10 g/s^2, c = 0.5 g/s, m = 1 g) and
+# lattice-26: a particle's stiffest mode is below sqrt(2 * 26 * k / m) ~ 23 rad/s, and
+# symplectic Euler needs omega * dt < 2; 0.05 s gives 1.1 in that worst case.
+DEFAULT_TIME_STEP = 0.05                # s
+# Measured on the small and full demo at the pose farthest from rest (issue 5): without drag
+# the lattices ring for the whole solve (damping ratio c / (2 sqrt(k m)) = 0.08 per spring) and
+# fold; 5 1/s damps the slow modes of a 20-particle fibre within ~100 iterations.
+DEFAULT_DRAG = 5.0                      # 1/s
+
+# ---- defaults of the quasi-static method -----------------------------------------------------
+
+DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a quasi-Newton step
+DEFAULT_HISTORY = 8             # L-BFGS pairs kept
+# The contact stiffness w as a multiple of the largest diagonal entry of L (the sum of the
+# stiffnesses of one particle's springs, 260 g/s^2 for a lattice-26 particle at the Spring
+# Builder's 10 g/s^2). Stiffer contacts leave less overlap for the final passes but are stiff
+# modes the Laplacian preconditioner does not know: on the full demo thigh at N = 20, walking
+# pose, 1.0 did not converge in 500 iterations, 0.3 converged in 398 (deepest overlap left for
+# the passes 0.19 mm); 0.1 and 0.03 did not converge either (more contacts slide).
+DEFAULT_CONTACT_WEIGHT = 0.3
+
+
+@dataclass
+class RelaxationSettings:
+    """What only the paper relaxation reads: its termination threshold (mm per iteration), the
+    time step (s) of its semi-implicit Euler integration and the viscous drag (1/s)."""
+
+    displacement_threshold: float = DEFAULT_DISPLACEMENT_THRESHOLD
+    time_step: float = DEFAULT_TIME_STEP
+    drag: float = DEFAULT_DRAG
+
+
+@dataclass
+class QuasiStaticSettings:
+    """What only the quasi-static method reads: its tolerance (mm, the largest particle move of
+    a quasi-Newton step), the contact stiffness (a multiple of the stiffest particle's spring
+    sum) and the number of L-BFGS pairs kept."""
+
+    tolerance: float = DEFAULT_TOLERANCE
+    contact_weight: float = DEFAULT_CONTACT_WEIGHT
+    history: int = DEFAULT_HISTORY
+
+
+@dataclass
+class SolverSettings:
+    """The MSS Collision Solver's parameters (the filter's properties).
+
+    ``method`` one of :data:`METHODS`; ``termination`` one of :data:`TERMINATIONS` (the
+    quasi-static method honours only ``time budget``, besides its tolerance); ``iterations``
+    caps every termination; ``time_budget`` s; ``bulk_modulus`` g/(mm s^2); ``structure`` one
+    of :data:`STRUCTURES` (both methods' final collision passes, and the relaxation's
+    iterations); ``muscle_muscle`` / ``muscle_bone`` which contacts count; the final collision
+    passes run up to ``projection_passes`` times until no overlap exceeds
+    ``penetration_tolerance`` mm. The method-specific parts sit beside them.
+    """
+
+    method: str = DEFAULT_METHOD
+    termination: str = TERMINATION_ITERATIONS
+    iterations: int = DEFAULT_ITERATIONS
+    time_budget: float = DEFAULT_TIME_BUDGET
+    bulk_modulus: float = DEFAULT_BULK_MODULUS
+    structure: str = STRUCTURE_HASH
+    bvh_max_depth: int = DEFAULT_BVH_MAX_DEPTH
+    bvh_min_primitives: int = DEFAULT_BVH_MIN_PRIMITIVES
+    muscle_muscle: bool = True
+    muscle_bone: bool = True
+    projection_passes: int = DEFAULT_PROJECTION_PASSES
+    penetration_tolerance: float = DEFAULT_PENETRATION_TOLERANCE
+    relaxation: RelaxationSettings = field(default_factory=RelaxationSettings)
+    quasi_static: QuasiStaticSettings = field(default_factory=QuasiStaticSettings)
+
+    @property
+    def budget(self) -> float | None:
+        """The wall-clock budget in s when the termination is ``time budget``, else None."""
+        return self.time_budget if self.termination == TERMINATION_BUDGET else None
+
+    @classmethod
+    def build(cls, **values) -> "SolverSettings":
+        """Settings from flat keywords, each given to the part that has a field of its name
+        (``SolverSettings.build(method=METHOD_QUASI_STATIC, iterations=300, tolerance=1e-4)``);
+        an unknown name is a TypeError, as for the constructor."""
+        parts = {"relaxation": RelaxationSettings, "quasi_static": QuasiStaticSettings}
+        own = {f.name for f in fields(cls)} - set(parts)
+        unknown = set(values) - own - {f.name for part in parts.values() for f in fields(part)}
+        if unknown:
+            raise TypeError(f"SolverSettings has no field {', '.join(sorted(unknown))}")
+        nested = {name: part(**{f.name: values[f.name] for f in fields(part) if f.name in values})
+                  for name, part in parts.items()}
+        return cls(**{k: v for k, v in values.items() if k in own}, **nested)
