@@ -30,6 +30,8 @@ import time
 import numpy as np
 
 from muscle_mss.core import solver as S
+from muscle_mss.core.model import prepare
+from muscle_mss.core.solid_contacts import solid_points
 from muscle_mss.core.bone_distance import bone_distance_field
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_arm import demo_arm_scene
@@ -83,16 +85,16 @@ def contact_rows(folder, scene, sizes):
             t = float(scene.motion.times[index])
             model, bones = posed_workload(folder, t, n)
             solids = solid_bones(update_at(pipeline.pose, 1, t))
-            prepared = S.prepare(model)
+            prepared = prepare(model)
             spheres_only = replace(model, in_bone_at_rest=None)
-            prepared_spheres = S.prepare(spheres_only)
+            prepared_spheres = prepare(spheres_only)
             none = (None, None, None)
             for args, kind in ((bones, None), (none, solids)):    # compiled, warm
                 S.solve(model, *args, settings=SolverSettings.build(iterations=2),
                         prepared=prepared, bone_solids=kind)
             spheres = median_solve(model, prepared, bones, None)
-            row = [n, label, t, len(S.solid_points(prepared_spheres)),
-                   len(S.solid_points(prepared)), spheres[0], spheres[2], spheres[3]]
+            row = [n, label, t, len(solid_points(prepared_spheres)),
+                   len(solid_points(prepared)), spheres[0], spheres[2], spheres[3]]
             for m, p in ((spheres_only, prepared_spheres), (model, prepared)):
                 total, mss, bone_cd, pairs = median_solve(m, p, none, solids)
                 # the solid contacts run in the MSS step's parallel region: their cost is

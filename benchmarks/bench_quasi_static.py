@@ -1,4 +1,4 @@
-"""Benchmark of the quasi-static solver (core/quasi_static.py) on the full demo thigh (issue 11).
+"""Benchmark of the quasi-static solver (core/quasi_static/) on the full demo thigh (issue 11).
 
 For the walking pose (a third into the motion, t = 0.35 s, as bench_solver.py) and the most
 flexed pose (t = 0.75 s), at N = 20 and 80 particles per fibre (13 muscles x 64 fibres,
@@ -24,6 +24,7 @@ import numpy as np
 
 from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import solver as S
+from muscle_mss.core.model import prepare
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.settings import DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
@@ -69,7 +70,7 @@ def main(args):
         for label, t in POSES:
             model, bones, solids = workload(pipeline, t)
             if prepared is None:
-                prepared = S.prepare(model)
+                prepared = prepare(model)
                 tick = time.perf_counter()
                 Q.preconditioner(model, prepared)
                 factor_seconds = time.perf_counter() - tick
@@ -100,7 +101,7 @@ def main(args):
     if args.walk_cap:
         pipeline = build_pipeline(folder, {"ParticlesPerFibre": 20})
         inputs = [workload(pipeline, float(t)) for t in scene.motion.times]
-        prepared = S.prepare(inputs[0][0])
+        prepared = prepare(inputs[0][0])
         Q.preconditioner(inputs[0][0], prepared)
         for mode in ("cold", "warm"):
             settings = quasi_static(iterations=args.walk_cap)

@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from muscle_mss.core import solver as S
+from muscle_mss.core.model import prepare
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.settings import STRUCTURES, SolverSettings
@@ -93,7 +94,7 @@ def main(sizes):
     rows = []
     for n in sizes:
         model, bones = posed_workload(folder, time_point, n)
-        prepared = S.prepare(model)
+        prepared = prepare(model)
         per_muscle = int(np.diff(model.offsets)[0])
         boundary = int(model.boundary.sum() / len(model.names))
         for structure in STRUCTURES:

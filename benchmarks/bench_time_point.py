@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from muscle_mss.core import penetration as P
-from muscle_mss.core import solver as S
+from muscle_mss.core import relaxation
 from muscle_mss.filters import bone_sets, motion_run
 from muscle_mss.filters.cli import DEMO_REGIONS, demo_region_scene
 from muscle_mss.filters.motion_run import build_pipeline, update_at
@@ -41,11 +41,11 @@ PARTS = ("pose", "solver setup", "iterations", "MVC", "statistics", "writing")
 
 
 class ChunkClock:
-    """Seconds spent in the solver's iteration chunks (wraps ``solver._solve_chunk``)."""
+    """Seconds spent in the solver's iteration chunks (wraps ``relaxation._solve_chunk``)."""
 
     def __init__(self):
         self.seconds = 0.0
-        self.inner = S._solve_chunk
+        self.inner = relaxation._solve_chunk
 
     def __call__(self, *args):
         start = time.perf_counter()
@@ -149,7 +149,7 @@ def spread(count, points) -> list:
 def main(argv=None):
     args = sizes_and_points(argv, __doc__.splitlines()[0])
     clock = ChunkClock()
-    S._solve_chunk = clock
+    relaxation._solve_chunk = clock
     table, replaced = [], []
     with tempfile.TemporaryDirectory() as folder:
         for region in args.scenes:

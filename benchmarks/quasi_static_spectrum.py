@@ -1,6 +1,6 @@
 """How well the quasi-static solver's preconditioner matches the energy's curvature (issue 11).
 
-The quasi-static solver (core/quasi_static.py) is L-BFGS whose initial inverse Hessian is the
+The quasi-static solver (core/quasi_static/) is L-BFGS whose initial inverse Hessian is the
 spring Laplacian ``A`` (plus the volume's rank-one term). For every pair ``(s, y)`` the solve
 keeps (a step and its change of gradient), the generalised Rayleigh quotient ``q = y.s / s.A s``
 says how stiff the energy really is along that step compared with what ``A`` assumes: ``q = 1``
@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sparse
 
 from muscle_mss.core import quasi_static as Q
-from muscle_mss.core import solver as S
+from muscle_mss.core.model import prepare
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.filters.motion_run import build_pipeline
 from muscle_mss.filters.scene_io import write_scene
@@ -51,22 +51,22 @@ def free_laplacian(model, prepared) -> sparse.csr_matrix:
 
 def rayleigh_quotients(model, bones, solids, cap):
     """``(quotients (pairs,), result)``: ``y.s / s.A s`` of every pair the default solve kept,
-    in order (the solve's :class:`~muscle_mss.core.quasi_static._History` is watched)."""
-    prepared = S.prepare(model)
+    in order (the solve's :class:`~muscle_mss.core.quasi_static.LBFGSHistory` is watched)."""
+    prepared = prepare(model)
     laplacian = free_laplacian(model, prepared)
     quotients = []
-    keep = Q._History.add
+    keep = Q.LBFGSHistory.add
 
     def watched(history, s, y, rho):
         quotients.append((1.0 / rho) / float(np.vdot(s, laplacian @ s)))
         return keep(history, s, y, rho)
 
-    Q._History.add = watched
+    Q.LBFGSHistory.add = watched
     try:
         result = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
                          settings=quasi_static(iterations=cap))
     finally:
-        Q._History.add = keep
+        Q.LBFGSHistory.add = keep
     return np.array(quotients), result
 
 

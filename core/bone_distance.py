@@ -38,8 +38,8 @@ For a solver (issue 14): build the set once per rest bones (:func:`bone_field_se
 Surface Deformer's cached ``bone_fields``), and per pose call ``push_out_of_bones(fields,
 centres, radii, transforms, active=~fixed)`` with the bones' (b, 3, 4) rest-to-posed
 transforms (``muscle_mss.core.pose.pose_at``); add the returned (n, 3) displacements. Inside a
-Numba loop, ``_push_rest`` / ``_sample`` take a bone index, a rest-frame point and
-``*fields.arrays()``, and ``_to_rest`` maps a posed point to bone b's rest frame.
+Numba loop, :func:`push_rest` / :func:`sample` take a bone index, a rest-frame point and
+``*fields.arrays()``, and :func:`to_rest` maps a posed point to bone b's rest frame.
 """
 from __future__ import annotations
 
@@ -690,7 +690,7 @@ def _sample_inside_box(b, ux, uy, uz, spacing, dims, coarse_start, coarse, index
 
 
 @njit(cache=True)
-def _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse, index_start,
+def sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse, index_start,
             brick_index, bricks):
     """Signed distance (mm) and its gradient at rest-frame point q of bone b."""
     h = spacing[b]
@@ -713,7 +713,7 @@ def _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse, index_st
 
 
 @njit(cache=True)
-def _to_rest(transforms, b, x, y, z):
+def to_rest(transforms, b, x, y, z):
     """``R^T (x - t)`` for bone b's rest-to-posed transform ``transforms[b]`` (3, 4)."""
     m = transforms[b]
     dx, dy, dz = x - m[0, 3], y - m[1, 3], z - m[2, 3]
@@ -727,8 +727,8 @@ def _signed_distances(points, transforms, origin, spacing, dims, coarse_start, c
                       index_start, brick_index, bricks, distance, gradient):
     for p in prange(points.shape[0]):
         for b in range(transforms.shape[0]):
-            qx, qy, qz = _to_rest(transforms, b, points[p, 0], points[p, 1], points[p, 2])
-            value, gx, gy, gz = _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start,
+            qx, qy, qz = to_rest(transforms, b, points[p, 0], points[p, 1], points[p, 2])
+            value, gx, gy, gz = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start,
                                         coarse, index_start, brick_index, bricks)
             distance[p, b] = value
             m = transforms[b]
@@ -767,13 +767,13 @@ def signed_distances(fields: BoneFieldSet, points, transforms=None):
 # ---- pushing points out ----------------------------------------------------------------------
 
 @njit(cache=True)
-def _push_rest(b, qx, qy, qz, radius, tolerance, origin, spacing, dims, coarse_start, coarse,
+def push_rest(b, qx, qy, qz, radius, tolerance, origin, spacing, dims, coarse_start, coarse,
                index_start, brick_index, bricks):
     """Move rest-frame point q of bone b along the distance gradient until its distance is at
     least ``radius - tolerance``; returns the new q and whether it moved."""
     moved = False
     for _ in range(PUSH_STEPS):
-        value, gx, gy, gz = _sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
+        value, gx, gy, gz = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
                                     index_start, brick_index, bricks)
         if value >= radius - tolerance:
             break
@@ -788,7 +788,7 @@ def _push_rest(b, qx, qy, qz, radius, tolerance, origin, spacing, dims, coarse_s
                 ex = sign * h if axis % 3 == 0 else 0.0
                 ey = sign * h if axis % 3 == 1 else 0.0
                 ez = sign * h if axis % 3 == 2 else 0.0
-                trial = _sample(b, qx + ex, qy + ey, qz + ez, origin, spacing, dims,
+                trial = sample(b, qx + ex, qy + ey, qz + ez, origin, spacing, dims,
                                 coarse_start, coarse, index_start, brick_index, bricks)[0]
                 if trial > best:
                     best, gx, gy, gz = trial, ex / h, ey / h, ez / h
@@ -811,8 +811,8 @@ def _push_out_of_bones(points, radii, active, transforms, tolerance, origin, spa
             for b in range(transforms.shape[0]):
                 if active[p, b] == 0:
                     continue
-                qx, qy, qz = _to_rest(transforms, b, x, y, z)
-                qx, qy, qz, moved = _push_rest(b, qx, qy, qz, radii[p], tolerance, origin,
+                qx, qy, qz = to_rest(transforms, b, x, y, z)
+                qx, qy, qz, moved = push_rest(b, qx, qy, qz, radii[p], tolerance, origin,
                                                spacing, dims, coarse_start, coarse, index_start,
                                                brick_index, bricks)
                 if moved:

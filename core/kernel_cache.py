@@ -20,13 +20,17 @@ _RESOLVED = re.compile(r"numba-[0-9a-f]{16}-")
 
 
 def sources_digest(folder: str) -> str:
-    """A short digest of the ``.py`` files of ``folder`` (names and contents)."""
+    """A short digest of the ``.py`` files of ``folder`` and its subpackages (relative paths
+    and contents)."""
     digest = hashlib.sha1()
-    for name in sorted(os.listdir(folder)):
-        if name.endswith(".py"):
-            digest.update(name.encode())
-            with open(os.path.join(folder, name), "rb") as f:
-                digest.update(f.read())
+    for root, dirs, files in os.walk(folder):
+        dirs[:] = sorted(d for d in dirs if not d.startswith((".", "__")))
+        for name in sorted(files):
+            if name.endswith(".py"):
+                path = os.path.join(root, name)
+                digest.update(os.path.relpath(path, folder).replace(os.sep, "/").encode())
+                with open(path, "rb") as f:
+                    digest.update(f.read())
     return digest.hexdigest()[:16]
 
 

@@ -43,6 +43,7 @@ exactly onto the surface of the sphere set. With one pair per object (two muscle
 from __future__ import annotations
 
 import time
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numba
@@ -186,6 +187,28 @@ def no_cages(n_muscles: int) -> VolumeCages:
                        np.ones(n_muscles))
 
 
+MSSState = namedtuple("MSSState", (
+    "x", "v", "x_prev", "force", "scratch", "inv_mass", "dt", "drag", "bulk_modulus", "cage_ptr",
+    "cage_triangles", "rest_volume", "offsets", "runs_int", "runs_param", "lane_rest", "run_ptr",
+    "scattered_int", "scattered_param", "scattered_ptr"))
+MSSState.__doc__ = """The mass-spring system's state and parameters for the step kernels (flat:
+it goes to parallel loops).
+
+``x``, ``v`` (3, n) float64 mm, mm/s; ``x_prev`` (3, n) receives x before the step; ``force``,
+``scratch`` (3, n) work arrays; ``inv_mass`` (n,) 1/g, 0 for fixed particles (so they never
+move); ``dt`` s; ``drag`` 1/s and ``bulk_modulus`` g/(mm s^2) as in :func:`mss_steps`;
+``cage_ptr``, ``cage_triangles``, ``rest_volume`` the :class:`VolumeCages`; ``offsets`` (M+1,)
+the muscles' particle ranges; the rest the :class:`SpringLayout`."""
+
+
+def mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages: VolumeCages, offsets,
+              layout: SpringLayout) -> MSSState:
+    """The :class:`MSSState` of positions and velocities ``x``, ``v`` (3, n), work space
+    ``work`` (3, 3, n) (previous positions, forces, scratch) and the parameters."""
+    return MSSState(x, v, work[0], work[1], work[2], inv_mass, float(dt), float(drag),
+                    float(bulk_modulus), *cages.arrays, offsets, *layout.arrays)
+
+
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
 def _spring_factor(dx, dy, dz, dvx, dvy, dvz, rest, k, c):
     """Force on the spring's first end divided by ``d``: (k (L - L0) + c dv.d / L) / L; zero for
@@ -227,9 +250,14 @@ def _run_scatter(f0, f1, f2, t0, t1, t2, first, lanes, d):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest,
-                   run_ptr, scattered_int, scattered_param, scattered_ptr):
-    """Spring forces on the particles of muscle ``m`` into ``force`` (3, n)."""
+def _muscle_forces(m, state):
+    """Spring forces on the particles of muscle ``m`` into ``state.force`` (3, n)."""
+    x, v, force, scratch, muscle_offsets = (state.x, state.v, state.force, state.scratch,
+                                            state.offsets)
+    runs_int, runs_param, lane_rest, run_ptr = (state.runs_int, state.runs_param,
+                                                state.lane_rest, state.run_ptr)
+    scattered_int, scattered_param, scattered_ptr = (state.scattered_int, state.scattered_param,
+                                                     state.scattered_ptr)
     for axis in range(3):
         force[axis, muscle_offsets[m]:muscle_offsets[m + 1]] = 0.0
     x0, x1, x2 = x[0], x[1], x[2]
@@ -257,7 +285,7 @@ def _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _cage_volume(m, x, cage_ptr, cage_triangles):
+def cage_volume(m, x, cage_ptr, cage_triangles):
     """Six times the volume (mm^3) of muscle ``m``'s cage at ``x`` (3, n).
 
     Coordinates are taken relative to one cage vertex ``o``: the volume of a closed cage is
@@ -281,7 +309,7 @@ def _cage_volume(m, x, cage_ptr, cage_triangles):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _add_cage_gradient(m, x, out, scale, cage_ptr, cage_triangles):
+def add_cage_gradient(m, x, out, scale, cage_ptr, cage_triangles):
     """Add ``scale`` times six times the gradient of muscle ``m``'s cage volume to ``out`` (3, n):
     the gradient of ``sum a.(b x c) / 6`` with respect to ``a`` is ``(b x c) / 6``."""
     first, stop = cage_ptr[m], cage_ptr[m + 1]
@@ -314,14 +342,13 @@ def _volume_forces(m, x, force, cage_ptr, cage_triangles, rest_volume, bulk_modu
     (V / V_rest - 1)^2 / 2`` (see :func:`mss_steps`)."""
     if cage_ptr[m + 1] == cage_ptr[m] or bulk_modulus == 0.0:
         return
-    volume = _cage_volume(m, x, cage_ptr, cage_triangles)
+    volume = cage_volume(m, x, cage_ptr, cage_triangles)
     pressure = -bulk_modulus * (volume / (6.0 * rest_volume[m]) - 1.0) / 6.0
-    _add_cage_gradient(m, x, force, pressure, cage_ptr, cage_triangles)
+    add_cage_gradient(m, x, force, pressure, cage_ptr, cage_triangles)
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _implicit_volume_forces(m, x, v, force, gradient, inv_mass, dt, cage_ptr, cage_triangles,
-                            rest_volume, bulk_modulus, first, stop):
+def _implicit_volume_forces(m, state):
     """Add muscle ``m``'s pressure force to ``force`` (3, n) so that the semi-implicit Euler
     step that follows takes the volume term implicitly (backward Euler on its stiffness).
 
@@ -333,13 +360,18 @@ def _implicit_volume_forces(m, x, v, force, gradient, inv_mass, dt, cage_ptr, ca
     is solved in closed form (Sherman-Morrison): the force handed to the integration becomes
     ``r - g (c g^T M^-1 r) / (1 + c g^T M^-1 g)``, ``r = f - dt K v``, ``c = dt^2 bulk_modulus
     / V_rest``. Stable at any BulkModulus; the equilibria (``f = 0``, ``v = 0``) are unchanged.
-    ``gradient`` (3, n) is work space (its entries ``[first, stop)`` are overwritten)."""
+    ``state.scratch`` (3, n) is work space (muscle ``m``'s entries are overwritten)."""
+    x, v, force, gradient, inv_mass, dt = (state.x, state.v, state.force, state.scratch,
+                                           state.inv_mass, state.dt)
+    cage_ptr, cage_triangles, rest_volume, bulk_modulus = (state.cage_ptr, state.cage_triangles,
+                                                           state.rest_volume, state.bulk_modulus)
+    first, stop = state.offsets[m], state.offsets[m + 1]
     if cage_ptr[m + 1] == cage_ptr[m] or bulk_modulus == 0.0:
         return
     for axis in range(3):
         gradient[axis, first:stop] = 0.0
-    _add_cage_gradient(m, x, gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
-    volume = _cage_volume(m, x, cage_ptr, cage_triangles) / 6.0
+    add_cage_gradient(m, x, gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
+    volume = cage_volume(m, x, cage_ptr, cage_triangles) / 6.0
     stiffness = bulk_modulus / rest_volume[m]
     g_v = 0.0
     for axis in range(3):
@@ -371,45 +403,31 @@ def _integrate(x, v, x_prev, force, inv_mass, first, stop, dt, keep):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
-                cage_triangles, rest_volume, muscle_offsets, runs_int, runs_param, lane_rest,
-                run_ptr, scattered_int, scattered_param, scattered_ptr):
-    """One semi-implicit Euler step of muscle ``m``, in place (arguments as :func:`mss_step`).
-    Muscles are independent: callers run them as the tasks of one ``prange``."""
-    _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest,
-                   run_ptr, scattered_int, scattered_param, scattered_ptr)
+def muscle_step(m, state):
+    """One semi-implicit Euler step of muscle ``m`` of ``state`` (:class:`MSSState`), in
+    place. Muscles are independent: callers run them as the tasks of one ``prange``."""
+    _muscle_forces(m, state)
     # the spring kernels are done with scratch's entries of muscle m: the volume term reuses them
-    _implicit_volume_forces(m, x, v, force, scratch, inv_mass, dt, cage_ptr, cage_triangles,
-                            rest_volume, bulk_modulus, muscle_offsets[m], muscle_offsets[m + 1])
-    keep = 1.0 / (1.0 + dt * drag)
+    _implicit_volume_forces(m, state)
+    keep = 1.0 / (1.0 + state.dt * state.drag)
+    first, stop = state.offsets[m], state.offsets[m + 1]
     for axis in range(3):
-        _integrate(x[axis], v[axis], x_prev[axis], force[axis], inv_mass, muscle_offsets[m],
-                   muscle_offsets[m + 1], dt, keep)
+        _integrate(state.x[axis], state.v[axis], state.x_prev[axis], state.force[axis],
+                   state.inv_mass, first, stop, state.dt, keep)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def mss_step(x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
-             cage_triangles, rest_volume, muscle_offsets, runs_int, runs_param, lane_rest,
-             run_ptr, scattered_int, scattered_param, scattered_ptr):
-    """One semi-implicit Euler step of every muscle, in place.
-
-    x, v (3, n) float64 mm, mm/s; x_prev (3, n) receives x before the step; force, scratch
-    (3, n) work arrays; inv_mass (n,) 1/g, 0 for fixed particles (so they never move);
-    dt s; drag 1/s, bulk_modulus g/(mm s^2) and the cages (:class:`VolumeCages`) as in
-    :func:`mss_steps`; the rest as :class:`SpringLayout`.
-    """
-    for m in prange(muscle_offsets.shape[0] - 1):
-        muscle_step(m, x, v, x_prev, force, scratch, inv_mass, dt, drag, bulk_modulus, cage_ptr,
-                    cage_triangles, rest_volume, muscle_offsets, runs_int, runs_param,
-                    lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+def mss_step(state):
+    """One semi-implicit Euler step of every muscle of ``state`` (:class:`MSSState`), in
+    place."""
+    for m in prange(state.offsets.shape[0] - 1):
+        muscle_step(m, state)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def _forces_all(x, v, force, scratch, muscle_offsets, runs_int, runs_param, lane_rest, run_ptr,
-                scattered_int, scattered_param, scattered_ptr):
-    for m in prange(muscle_offsets.shape[0] - 1):
-        _muscle_forces(m, x, v, force, scratch, muscle_offsets, runs_int, runs_param,
-                       lane_rest, run_ptr, scattered_int, scattered_param, scattered_ptr)
+def _forces_all(state):
+    for m in prange(state.offsets.shape[0] - 1):
+        _muscle_forces(m, state)
 
 
 def _soa(points, n, what):
@@ -428,9 +446,11 @@ def spring_forces(positions, velocities, layout: SpringLayout, muscle_offsets) -
     n = int(offsets[-1])
     x = _soa(positions, n, "positions")
     v = _soa(velocities, n, "velocities")
-    force = np.zeros_like(x)
-    _forces_all(x, v, force, np.zeros_like(x), offsets, *layout.arrays)
-    return force.T.copy()
+    work = np.zeros((3, 3, n))
+    state = mss_state(x, v, work, np.zeros(n), 0.0, 0.0, 0.0, no_cages(len(offsets) - 1),
+                      offsets, layout)
+    _forces_all(state)
+    return state.force.T.copy()
 
 
 def mss_steps(positions, velocities, masses, fixed, layout: SpringLayout, muscle_offsets,
@@ -454,9 +474,9 @@ def mss_steps(positions, velocities, masses, fixed, layout: SpringLayout, muscle
     v[:, inv_mass == 0.0] = 0.0
     work = np.zeros((3, 3, n))
     cages = cages if cages is not None else no_cages(len(offsets) - 1)
+    state = mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages, offsets, layout)
     for _ in range(int(steps)):
-        mss_step(x, v, work[0], work[1], work[2], inv_mass, float(dt), float(drag),
-                 float(bulk_modulus), *cages.arrays, offsets, *layout.arrays)
+        mss_step(state)
     return x.T.copy(), v.T.copy()
 
 

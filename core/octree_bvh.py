@@ -20,7 +20,7 @@ give bitwise the same displacements.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
@@ -35,49 +35,23 @@ STATIC = np.iinfo(np.int64).max     # stamp of a static (bone) box: always curre
 START, COUNT, CHILD, N_CHILDREN, DEPTH, OBJECT = range(6)
 
 
-@dataclass
-class OctreeBVH:
-    """The trees of all objects in one node pool; primitives are global sphere ids ``g``:
-    muscle spheres ``0 .. m-1`` then bone spheres.
+OctreeBVH = namedtuple("OctreeBVH", (
+    "centres", "radius", "fixed", "perm", "scratch", "object_first", "static", "node_int",
+    "node_box", "node_stamp", "stack", "state", "best_pen", "best_dir", "best_partner", "touched",
+    "n_muscles", "n_muscle_spheres", "max_depth", "min_primitives"))
+OctreeBVH.__doc__ = """The trees of all objects in one node pool; primitives are global sphere
+ids ``g``: muscle spheres ``0 .. m-1`` then bone spheres.
 
-    ``centres`` (3, G) mm (muscle part refreshed every iteration), ``radius`` (G,),
-    ``fixed`` (G,) bool (fixed particles and all bone spheres), ``object_first`` (K + 1,): object
-    ``k``'s spheres are ``perm[object_first[k]:object_first[k + 1]]`` and its root is node ``k``;
-    ``static`` (K,) bool. ``node_int`` (6, capacity) int64 rows START, COUNT, CHILD (first child,
-    -1 = not split), N_CHILDREN, DEPTH, OBJECT; ``node_box`` (6, capacity) lower and upper
-    corners; ``node_stamp`` (capacity,); ``state`` [nodes in use, current stamp, spheres
-    touched]. ``best_pen`` (G,), ``best_dir`` (3, G), ``best_partner`` (G,), ``touched`` (G,):
-    each sphere's deepest pair with the object being tested.
-    """
-
-    centres: np.ndarray
-    radius: np.ndarray
-    fixed: np.ndarray
-    perm: np.ndarray
-    scratch: np.ndarray
-    object_first: np.ndarray
-    static: np.ndarray
-    node_int: np.ndarray
-    node_box: np.ndarray
-    node_stamp: np.ndarray
-    stack: np.ndarray
-    state: np.ndarray
-    best_pen: np.ndarray
-    best_dir: np.ndarray
-    best_partner: np.ndarray
-    touched: np.ndarray
-    n_muscles: int
-    n_muscle_spheres: int
-    max_depth: int
-    min_primitives: int
-
-    @property
-    def arrays(self) -> tuple:
-        """The arrays in the order :func:`bvh_pass` takes them."""
-        return (self.centres, self.radius, self.fixed, self.perm, self.scratch,
-                self.object_first, self.static, self.node_int, self.node_box, self.node_stamp,
-                self.stack, self.state, self.best_pen, self.best_dir, self.best_partner,
-                self.touched)
+``centres`` (3, G) mm (muscle part refreshed every iteration), ``radius`` (G,),
+``fixed`` (G,) bool (fixed particles and all bone spheres), ``object_first`` (K + 1,): object
+``k``'s spheres are ``perm[object_first[k]:object_first[k + 1]]`` and its root is node ``k``;
+``static`` (K,) bool. ``node_int`` (6, capacity) int64 rows START, COUNT, CHILD (first child,
+-1 = not split), N_CHILDREN, DEPTH, OBJECT; ``node_box`` (6, capacity) lower and upper
+corners; ``node_stamp`` (capacity,); ``state`` [nodes in use, current stamp, spheres
+touched]. ``best_pen`` (G,), ``best_dir`` (3, G), ``best_partner`` (G,), ``touched`` (G,):
+each sphere's deepest pair with the object being tested. ``n_muscles`` objects are muscles,
+holding ``n_muscle_spheres`` spheres; ``max_depth`` and ``min_primitives`` bound the
+subdivision."""
 
 
 def _node_bound(n: int, max_depth: int, min_primitives: int) -> int:
@@ -212,13 +186,14 @@ def _volume(u, node_box):
 
 
 @njit(cache=True)
-def _traverse(root_a, root_b, centres, radius, fixed, perm, scratch, static, node_int,
-              node_box, node_stamp, stack, state, max_depth, min_primitives, best_pen, best_dir,
-              best_partner, touched, collided, pairs, n_pairs):
+def _traverse(root_a, root_b, tree, collided, pairs, n_pairs):
     """Collide the trees of two objects: each sphere's deepest pair with the other object
-    into ``best_*`` (spheres listed in ``touched[:state[2]]``); returns (colliding pairs,
-    deepest penetration mm of a pair that is not fixed on both sides). Records the pairs (sphere ids, lower first) in ``pairs`` while
-    it has room."""
+    into ``tree.best_*`` (spheres listed in ``touched[:state[2]]``); returns (colliding pairs,
+    deepest penetration mm of a pair that is not fixed on both sides). Records the pairs
+    (sphere ids, lower first) in ``pairs`` while it has room."""
+    (centres, radius, fixed, perm, scratch, _, static, node_int, node_box, node_stamp, stack,
+     state, best_pen, best_dir, best_partner, touched, _, _, max_depth,
+     min_primitives) = tree
     stamp = state[1]
     count = 0
     deepest = 0.0
@@ -277,28 +252,28 @@ def _traverse(root_a, root_b, centres, radius, fixed, perm, scratch, static, nod
 
 
 @njit(cache=True)
-def bvh_pass(bones, n_muscles, max_depth, min_primitives, centres, radius, fixed, perm, scratch,
-             object_first, static, node_int, node_box, node_stamp, stack, state, best_pen,
-             best_dir, best_partner, touched, disp, collided, pairs, n_pairs):
-    """Every muscle against every other muscle (``bones`` False) or every bone (True).
+def bvh_pass(bones, tree, disp, collided, pairs, n_pairs):
+    """Every muscle against every other muscle (``bones`` False) or every bone (True) of
+    ``tree`` (:class:`OctreeBVH`).
 
     ``disp`` (3, G) mm and ``collided`` (G,) receive the response; returns (colliding pairs,
-    deepest penetration mm). Increment ``state[1]`` whenever the muscle spheres have moved, so
-    that their boxes are refitted.
+    deepest penetration mm); ``pairs`` (P, 2) receives the first colliding pairs, their count
+    goes to ``n_pairs[0]``. Increment ``tree.state[1]`` whenever the muscle spheres have moved,
+    so that their boxes are refitted.
     """
     count = 0
     deepest = 0.0
-    n_objects = object_first.shape[0] - 1
+    n_muscles = tree.n_muscles
+    n_objects = tree.object_first.shape[0] - 1
     for a in range(n_muscles):
         first_b = n_muscles if bones else a + 1
         last_b = n_objects if bones else n_muscles
         for b in range(first_b, last_b):
-            if node_int[COUNT, a] == 0 or node_int[COUNT, b] == 0:
+            if tree.node_int[COUNT, a] == 0 or tree.node_int[COUNT, b] == 0:
                 continue
-            c, d = _traverse(a, b, centres, radius, fixed, perm, scratch, static, node_int,
-                             node_box, node_stamp, stack, state, max_depth, min_primitives,
-                             best_pen, best_dir, best_partner, touched, collided, pairs, n_pairs)
-            _push_deepest(fixed, best_pen, best_dir, best_partner, touched, state, disp)
+            c, d = _traverse(a, b, tree, collided, pairs, n_pairs)
+            _push_deepest(tree.fixed, tree.best_pen, tree.best_dir, tree.best_partner,
+                          tree.touched, tree.state, disp)
             count += c
             deepest = max(deepest, d)
     return count, deepest
@@ -317,14 +292,12 @@ def colliding_pairs(centres, bvh: OctreeBVH):
     found = []
     for bones in (False, True):
         n_pairs = np.zeros(1, dtype=np.int64)
-        args = (bones, bvh.n_muscles, bvh.max_depth, bvh.min_primitives) + bvh.arrays
-        bvh_pass(*args, np.zeros((3, g)), np.zeros(g, np.uint8), np.zeros((0, 2), np.int64),
+        bvh_pass(bones, bvh, np.zeros((3, g)), np.zeros(g, np.uint8), np.zeros((0, 2), np.int64),
                  n_pairs)
         pairs = np.zeros((int(n_pairs[0]), 2), dtype=np.int64)
         n_pairs[0] = 0
-        bvh_pass(*args, np.zeros((3, g)), np.zeros(g, np.uint8), pairs, n_pairs)
+        bvh_pass(bones, bvh, np.zeros((3, g)), np.zeros(g, np.uint8), pairs, n_pairs)
         if bones:
             pairs[:, 1] -= m
         found.append(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))])
     return found[0], found[1]
-

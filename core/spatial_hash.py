@@ -296,9 +296,9 @@ def candidate_lists(query, q_radius, q_object, table, skin):
 
 
 @njit(cache=True, parallel=True)
-def own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, begin, end, idx,
-                      room, longest, pending, retry, t_centres, t_radius, t_object, t_moves,
-                      disp, collided, pair_count, pair_pen):
+def _own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, begin, end, idx,
+                       room, longest, pending, retry, t_centres, t_radius, t_object, t_moves,
+                       disp, collided, pair_count, pair_pen):
     """Collisions of the query spheres with targets that do not move (the bones), through
     lists each sphere keeps on its own, in one pass over the spheres: a sphere that moved more
     than ``skin / 2`` since its list was built rebuilds it (exact, the targets being still),
@@ -333,6 +333,21 @@ def own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, begi
             _contact(i, query, q_radius, fixed, begin[i], end[i], idx, t_centres, t_radius,
                      t_object, t_moves, False, disp, collided, pair_count, pair_pen)
     return longest.max() if query.shape[1] else 0
+
+
+@njit(cache=True)
+def own_list_contacts(spheres, hashed, table, begin, end, idx, room, retry):
+    """Collisions of the muscle spheres of ``spheres``
+    (:class:`~muscle_mss.core.contacts.SphereState`) with the bone spheres of ``hashed``
+    (:class:`~muscle_mss.core.contacts.HashState`) through the lists each sphere keeps on its own
+    (:func:`_own_list_contacts`, whose arguments are the tuples' arrays: Numba's parallel loops
+    lost writes to arrays taken out of a tuple), from the bones' grid ``table``. Returns the
+    longest list found (above ``room``: call again with ``retry``)."""
+    return _own_list_contacts(
+        spheres.centres, spheres.radius, spheres.fixed, spheres.muscle, table, hashed.skin,
+        hashed.mb_built, begin, end, idx, room, hashed.longest, hashed.pending, retry,
+        hashed.bone_centres, hashed.bone_radius, hashed.bone_object, hashed.bone_moves,
+        spheres.disp, spheres.collided, spheres.pair_count, spheres.pair_pen)
 
 
 @njit(cache=True, parallel=True)

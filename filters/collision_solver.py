@@ -24,7 +24,7 @@ can resolve: not a fixed tendon sphere against its bone) and ``seconds``
 how many collision passes ran after the last iteration and the deepest overlap they left.
 
 Two methods (property ``Method``): ``paper relaxation`` (the default,
-:mod:`muscle_mss.core.solver`) runs the paper's explicit iterations; ``quasi-static``
+:mod:`muscle_mss.core.relaxation`) runs the paper's explicit iterations; ``quasi-static``
 (:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the same model to
 ``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
 is not the default because on the demo thigh it needs about 1,100 iterations (11 s at N = 20)
@@ -55,7 +55,8 @@ import numpy as np
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
 from muscle_mss.core import quasi_static as Q
-from muscle_mss.core import solver as S
+from muscle_mss.core.model import MSSModel, PreparedModel, prepare
+from muscle_mss.core.solver import solve
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.cage import fibre_polylines
@@ -348,7 +349,7 @@ class MSSCollisionSolver(MuscleFilter):
         columns["colliding_pairs"] = result.colliding_pairs
         columns["max_penetration"] = result.max_penetration
         columns["seconds"] = result.seconds
-        quasi_static = isinstance(result, Q.QuasiStaticResult)
+        quasi_static = result.method == METHOD_QUASI_STATIC
         if quasi_static:
             columns[A.RESIDUAL] = result.residual
         V.fill_table(outputs[1], columns)
@@ -372,7 +373,7 @@ class MSSCollisionSolver(MuscleFilter):
                 "Tolerance\n")
         self.progress(1.0)
 
-    def _solve(self, model: S.MSSModel, bones, solids, prepared: S.PreparedModel):
+    def _solve(self, model: MSSModel, bones, solids, prepared: PreparedModel):
         """The chosen method's solve against the bone spheres ``bones`` (``(centres, radii,
         bone)`` or Nones) or the bones as solids ``solids``; the quasi-static one warm started
         from the last solution when the model (topology, rest state) and the properties are
@@ -380,20 +381,20 @@ class MSSCollisionSolver(MuscleFilter):
         progress = lambda f: self.progress(0.05 + 0.9 * f)  # noqa: E731
         settings = self.settings()
         if settings.method != METHOD_QUASI_STATIC:
-            return S.solve(model, *bones, settings=settings, progress=progress,
-                           prepared=prepared, bone_solids=solids)
+            return solve(model, *bones, settings=settings, progress=progress,
+                         prepared=prepared, bone_solids=solids)
         key = (self._prepared_key, repr(settings), self.value("BoneSphereSpacing"),
                self.choice("BoneContact"))
         start = None
         if self.value("WarmStart") and self._last is not None and self._last[0] == key:
             start = model.positions + (self._last[2] - self._last[1])
-        result = Q.solve(model, *bones, settings=settings, progress=progress,
-                         prepared=prepared, start=start, bone_solids=solids)
+        result = solve(model, *bones, settings=settings, progress=progress,
+                       prepared=prepared, start=start, bone_solids=solids)
         self._last = (key, np.array(model.positions, dtype=np.float64), result.positions)
         return result
 
     @staticmethod
-    def _model(names, parts) -> S.MSSModel:
+    def _model(names, parts) -> MSSModel:
         sizes = [len(p["points"]) for p in parts]
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
@@ -407,7 +408,7 @@ class MSSCollisionSolver(MuscleFilter):
         in_bone = None
         if all(p["in_bone"] is not None for p in parts):
             in_bone = np.concatenate([p["in_bone"].reshape(-1) != 0 for p in parts])
-        return S.MSSModel(names, offsets, cat("points"), cat(A.FIXED) != 0,
+        return MSSModel(names, offsets, cat("points"), cat(A.FIXED) != 0,
                           cat(A.MASS, np.float64), cat(A.BOUNDARY) != 0,
                           cat(A.RADIUS, np.float64), cat(A.FIBRE_ID, np.int64),
                           cat(A.FIBRE_INDEX, np.int64), springs, cat(A.REST_LENGTH, np.float64),
@@ -430,7 +431,7 @@ class MSSCollisionSolver(MuscleFilter):
         self.setup_counts["checked"] += 1
         return identity, part
 
-    def _posed_model(self, names, parts, identities) -> S.MSSModel:
+    def _posed_model(self, names, parts, identities) -> MSSModel:
         """:meth:`_model`, its arrays other than the coordinates reused while the blocks'
         identities are those of the last update."""
         key = (tuple(names), tuple(identities))
@@ -443,7 +444,7 @@ class MSSCollisionSolver(MuscleFilter):
         self._static = (key, model)
         return model
 
-    def _prepare(self, model: S.MSSModel, identities=None) -> S.PreparedModel:
+    def _prepare(self, model: MSSModel, identities=None) -> PreparedModel:
         """The particle order and spring layout, reused while the model's topology and spring
         parameters stay the same (every time point of a motion): while the blocks' array
         identities stay the same, else while the arrays' contents do."""
@@ -461,7 +462,7 @@ class MSSCollisionSolver(MuscleFilter):
                 digest.update(label + np.ascontiguousarray(optional).tobytes())
         key = digest.hexdigest()
         if key != self._prepared_key:
-            self._prepared = S.prepare(model)
+            self._prepared = prepare(model)
             self._prepared_key = key
         self._prepared_identity = identities
         return self._prepared

@@ -3,7 +3,8 @@ core/bone_spheres.py and the response rule of core/mss.py)."""
 import numpy as np
 import pytest
 
-from muscle_mss.core import mss, octree_bvh, spatial_hash, solver
+from muscle_mss.core import contacts, mss, octree_bvh, spatial_hash, solver
+from muscle_mss.core.model import MSSModel
 from muscle_mss.core.bone_spheres import SPHERES_PER_AREA, bone_spheres, surface_area
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import DEFAULT_PENETRATION_TOLERANCE, STRUCTURES, SolverSettings
@@ -17,7 +18,7 @@ def loose_model(positions, radii, muscles, fixed=None, springs=None, rest=None):
     offsets = np.concatenate([[0], np.cumsum(np.bincount(muscles))])
     springs = np.zeros((0, 2), int) if springs is None else np.asarray(springs)
     rest = np.zeros(0) if rest is None else np.asarray(rest, float)
-    return solver.MSSModel(
+    return MSSModel(
         [f"m{m}" for m in range(len(offsets) - 1)], offsets, positions,
         np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool), np.ones(n),
         np.ones(n, bool), np.asarray(radii, float), np.arange(n), np.zeros(n, int), springs,
@@ -210,7 +211,7 @@ def test_final_passes_give_up_on_a_sphere_wedged_between_two_bones():
     bones = (np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.5]]), np.array([1.0, 1.0]),
              np.array([0, 1]))
     result = one_iteration(model, "spatial hash", bones, projection_passes=100)
-    assert result.projection_passes == 1 + solver.STALLED_PASSES
+    assert result.projection_passes == 1 + contacts.STALLED_PASSES
     assert result.remaining_penetration == pytest.approx(0.75)
     np.testing.assert_allclose(result.positions[0], [0.0, 0.0, 1.25], atol=1e-12)
 

@@ -179,11 +179,11 @@ def test_solved_blocks_count_free_particles_in_bones_and_solids_leave_none_new(f
 
 def test_skipping_particles_clear_of_the_solid_bones_changes_nothing(flexed, monkeypatch):
     """The solid contacts skip a particle that has moved little since it was found clear of
-    every bone by a margin (core/solver.py, SOLID_LIPSCHITZ); testing every particle in every
-    iteration gives bitwise the same solve at the most flexed pose."""
-    from muscle_mss.core import solver as core_solver
+    every bone by a margin (core/solid_contacts.py, SOLID_LIPSCHITZ); testing every particle in
+    every iteration gives bitwise the same solve at the most flexed pose."""
+    from muscle_mss.core import solid_contacts
     skipping = snapshot(solve(*flexed, Iterations=150)[0])
-    monkeypatch.setattr(core_solver, "SOLID_SLACK_CELLS", np.inf)
+    monkeypatch.setattr(solid_contacts, "SOLID_SLACK_CELLS", np.inf)
     every = snapshot(solve(*flexed, Iterations=150)[0])
     for name, (points, arrays) in every.items():
         assert np.array_equal(skipping[name][0], points), name

@@ -1,4 +1,4 @@
-"""Quasi-static solver (core/quasi_static.py) against a slow obvious reference, and its use in
+"""Quasi-static solver (core/quasi_static/) against a slow obvious reference, and its use in
 the MSS Collision Solver filter (Method, Tolerance, WarmStart, residual, converged)."""
 import numpy as np
 import pytest
@@ -6,7 +6,8 @@ from scipy.optimize import minimize
 from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 
 from muscle_mss.core import quasi_static as Q
-from muscle_mss.core import solver as S
+from muscle_mss.core import model as S
+from muscle_mss.core import relaxation
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_CONTACT_WEIGHT,
@@ -100,7 +101,7 @@ def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     model, bone = chain_on_a_ball()
     prep = S.prepare(model)
     weight = DEFAULT_CONTACT_WEIGHT * Q.preconditioner(model, prep).stiffest
-    result = Q.solve(model, *bone, prepared=prep, settings=SolverSettings.build(method=METHOD_QUASI_STATIC,
+    result = Q.solve(model, *bone, prepared=prep, settings=quasi_static(
         tolerance=1e-9, iterations=5000, projection_passes=0))
     assert result.converged and result.residual[-1] < 1e-9
     assert result.collided.any()
@@ -133,7 +134,7 @@ def test_equilibrium_net_force_on_free_particles_is_below_the_tolerance_equivale
     prep = S.prepare(model)
     assert prep.cages.ptr[-1] > 0                       # the volume term is in play
     tolerance = 1e-4
-    result = Q.solve(model, prepared=prep, settings=SolverSettings.build(method=METHOD_QUASI_STATIC,
+    result = Q.solve(model, prepared=prep, settings=quasi_static(
         tolerance=tolerance, iterations=3000))
     assert result.converged and result.stopped_by == "tolerance"
     force = reference_forces(model, result.positions, DEFAULT_BULK_MODULUS)
@@ -334,13 +335,13 @@ def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(mo
     model, _, solids, _ = chain_in_a_box(3.0)
     settings = quasi_static(tolerance=1e-4, iterations=3000)
     listed_sizes = []
-    refresh = Q._Energy._refresh_near_solids
+    refresh = Q.ContactEnergy._refresh_near_solids
 
     def recording(self):
         refresh(self)
         listed_sizes.append((len(self.near[0]), len(self.solid_points)))
 
-    monkeypatch.setattr(Q._Energy, "_refresh_near_solids", recording)
+    monkeypatch.setattr(Q.ContactEnergy, "_refresh_near_solids", recording)
     listed = Q.solve(model, settings=settings, bone_solids=solids)
     assert listed.converged
     assert min(size for size, _ in listed_sizes) < listed_sizes[0][1]   # some were skipped
@@ -364,7 +365,8 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
     model, box, solids, inside = chain_in_a_box(1.0)
     clearance = solids.clearance[0]
     assert inside.sum() == 4 and not (inside & model.fixed).any()
-    result = S.solve(model, settings=SolverSettings.build(iterations=300), bone_solids=solids)
+    result = relaxation.solve(model, settings=SolverSettings.build(iterations=300),
+                              bone_solids=solids)
     slack = DEFAULT_PENETRATION_TOLERANCE
     assert result.bone_pairs[0] > 0 and result.remaining_penetration <= slack
     free = result.positions[~model.fixed]

@@ -1,8 +1,8 @@
-"""The relaxation loop (core/solver.py): terminations, history, determinism, divergence, abort."""
+"""The relaxation loop (core/relaxation.py): terminations, history, determinism, divergence, abort."""
 import numpy as np
 import pytest
 
-from muscle_mss.core import solver, spatial_hash
+from muscle_mss.core import model as core_model, solver, spatial_hash
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import STRUCTURES, SolverSettings
 
@@ -21,7 +21,7 @@ def pressed():
     index = np.tile(np.arange(8), 18)
     fibre = np.repeat(np.arange(18), 8)
     radius = np.full(2 * n, 1.2)
-    model = solver.MSSModel(
+    model = core_model.MSSModel(
         ["front", "back"], np.array([0, n, 2 * n]), positions, (index == 0) | (index == 7),
         np.ones(2 * n), np.ones(2 * n, bool), radius, fibre, index,
         np.concatenate([springs, springs + n]), np.concatenate([rest, rest]),
@@ -108,9 +108,9 @@ def test_switching_collisions_off(pressed):
 def test_divergence_names_the_muscle(pressed):
     # inside the margin of the stability bound, so it is not refused up front, and too long
     # for the springs: the run itself must stop
-    dt = solver.stable_time_step(pressed[0])[0]
+    dt = core_model.stable_time_step(pressed[0])[0]
     with pytest.raises(MuscleMSSError, match="muscle '(front|back)' diverged.*TimeStep"):
-        run(pressed, iterations=300, time_step=0.95 * solver.STABILITY_MARGIN * dt)
+        run(pressed, iterations=300, time_step=0.95 * core_model.STABILITY_MARGIN * dt)
 
 
 @pytest.mark.parametrize("structure", STRUCTURES)
@@ -124,7 +124,7 @@ def test_a_sphere_thrown_out_of_the_scene_stops_before_collision_detection(
     free = ~model.fixed[model.springs].any(axis=1) & (model.springs < 72).all(axis=1)
     rest = model.rest_length.copy()
     rest[np.flatnonzero(free)[0]] = length
-    thrown = solver.MSSModel(**{**model.__dict__, "rest_length": rest})
+    thrown = core_model.MSSModel(**{**model.__dict__, "rest_length": rest})
     with pytest.raises(MuscleMSSError, match=r"muscle 'front' diverged at iteration 1: its mean "
                        rf"particle displacement was {moved} mm"):
         solver.solve(thrown, *bones, settings=SolverSettings.build(iterations=5,
@@ -155,15 +155,15 @@ def test_a_time_step_far_beyond_the_stable_one_is_refused_up_front(pressed):
                        r"below 0.0769 s.*\(26 times too long\); lower the "
                        r"MSS Collision Solver's TimeStep below .*Spring Builder's Mass"):
         run(pressed, time_step=2.0)
-    light = solver.MSSModel(**{**model.__dict__, "mass": np.full(len(model.mass), 1e-8)})
+    light = core_model.MSSModel(**{**model.__dict__, "mass": np.full(len(model.mass), 1e-8)})
     with pytest.raises(MuscleMSSError, match="mass 1e-08 g"):
         solver.solve(light, settings=SolverSettings.build())
-    stiff = solver.MSSModel(**{**model.__dict__, "stiffness": np.full(len(model.stiffness), 1e9)})
+    stiff = core_model.MSSModel(**{**model.__dict__, "stiffness": np.full(len(model.stiffness), 1e9)})
     with pytest.raises(MuscleMSSError, match="springs of total stiffness 2.6e\\+10 g/s\\^2.*lower its "
                        "Stiffness"):
         solver.solve(stiff, settings=SolverSettings.build())
     # a centre particle of the lattice: 26 springs of damping 0.5 g/s, 2 / (26 (1 + 1))
-    assert solver.stable_time_step(model) == (pytest.approx(2 / 26), 0, 34, "damping")
+    assert core_model.stable_time_step(model) == (pytest.approx(2 / 26), 0, 34, "damping")
 
 
 def test_an_iteration_history_too_large_for_memory_is_refused(pressed):

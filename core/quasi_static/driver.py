@@ -1,0 +1,284 @@
+"""The quasi-static minimisation (see :mod:`muscle_mss.core.quasi_static`): L-BFGS iterations
+with a backtracking line search on :class:`~.energy.ContactEnergy`, stopped by the residual and
+its estimated distance to go, then the paper method's final collision passes."""
+from __future__ import annotations
+
+import time
+from collections import namedtuple
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bone_distance import BoneSolids, push_out_of_bones
+from ..contacts import (Contacts, bvh_state, collision_spheres, final_passes, hash_state,
+                        solved_state, world_box)
+from ..errors import MuscleMSSError
+from ..model import MSSModel, PreparedModel, SolveResult, check_history_size, prepare
+from ..settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, STRUCTURES, TERMINATION_BUDGET,
+                        TERMINATION_ITERATIONS, SolverSettings)
+from ..solid_contacts import solid_state
+from .energy import ContactEnergy
+from .lbfgs import LBFGSHistory, direction, largest_move, settled
+from .preconditioner import InitialInverseHessian, preconditioner
+
+ARMIJO = 1e-4                   # sufficient decrease of the line search
+BACKTRACKS = 40                 # line search halvings before the solve gives up
+# Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
+# fraction of the energy is rounding, not an increase (the last steps of a tight solve).
+ENERGY_ROUNDING = 1e-13
+
+
+@dataclass
+class QuasiStaticResult(SolveResult):
+    """:class:`~muscle_mss.core.model.SolveResult` plus ``residual`` (K,) mm, the largest
+    particle move of each iteration's quasi-Newton step, ``energy`` (K,) g mm^2/s^2 at the start
+    of each iteration, and ``converged``: the loop met the tolerance and the final passes left
+    no overlap above the penetration tolerance. ``velocity`` is zero (a static solution);
+    ``mean_displacement`` (K, M) is each muscle's mean particle move of the iteration (fixed
+    particles count as not moving); ``muscle_pairs``, ``bone_pairs`` and ``max_penetration``
+    the overlapping pairs and the deepest overlap (mm) at the start of each iteration."""
+
+    residual: np.ndarray | None = None
+    energy: np.ndarray | None = None
+    converged: bool = False
+    method: str = METHOD_QUASI_STATIC
+
+
+IterationRecord = namedtuple("IterationRecord", (
+    "residual", "energy", "mean_move", "muscle_pairs", "bone_pairs", "max_penetration",
+    "seconds"))
+IterationRecord.__doc__ = """One row per iteration: ``residual`` (K,) mm the largest particle
+move of the quasi-Newton step, ``energy`` (K,) g mm^2/s^2 at its start, ``mean_move`` (K, M) mm
+each muscle's mean particle move, ``muscle_pairs``, ``bone_pairs`` (K,) and
+``max_penetration`` (K,) mm the overlaps at its start, ``seconds`` (K,) cumulative."""
+
+
+def _record(cap: int, n_muscles: int) -> IterationRecord:
+    return IterationRecord(np.zeros(cap), np.zeros(cap), np.zeros((cap, n_muscles)),
+                           np.zeros(cap, dtype=np.int64), np.zeros(cap, dtype=np.int64),
+                           np.zeros(cap), np.zeros(cap))
+
+
+def check_settings(settings: SolverSettings) -> None:
+    """Raise :class:`MuscleMSSError` unless ``settings`` are valid for this method."""
+    if settings.structure not in STRUCTURES:
+        raise MuscleMSSError(f"collision structure {settings.structure!r} is not one of "
+                             f"{', '.join(STRUCTURES)}")
+    for name, value, least in (("iterations", settings.iterations, 1),
+                               ("projection passes", settings.projection_passes, 0),
+                               ("history", settings.quasi_static.history, 0)):
+        if not (value >= least and int(value) == value):
+            raise MuscleMSSError(f"solver {name} is {value}; it must be a whole number, "
+                                 f"{least} or more")
+    for name, value in (("tolerance", settings.quasi_static.tolerance),
+                        ("penetration tolerance", settings.penetration_tolerance),
+                        ("bulk modulus", settings.bulk_modulus)):
+        if not (value >= 0.0 and np.isfinite(value)):
+            raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
+    weight = settings.quasi_static.contact_weight
+    if not (weight > 0.0 and np.isfinite(weight)):
+        raise MuscleMSSError(f"solver contact weight is {weight}; it must be "
+                             "finite and positive")
+    if settings.budget is not None and not settings.budget >= 0.0:
+        raise MuscleMSSError(f"solver time budget is {settings.budget}; it must be 0 or "
+                             "more")
+
+
+def push_out_of_solids(x, points, radius, solids: BoneSolids) -> None:
+    """Move the particles ``points`` (k,) of ``x`` (3, n) out to their ``radius`` (k,) mm plus
+    the clearance from each bone solid (the penalty leaves an overlap of contact force / w at
+    the minimum; :func:`~muscle_mss.core.bone_distance.push_out_of_bones`, bone by bone, twice
+    over)."""
+    b = len(solids.fields)
+    for _ in range(2):
+        for bone in range(b):
+            active = np.zeros((len(points), b), dtype=bool)
+            active[:, bone] = True
+            centres = np.ascontiguousarray(x[:, points].T)
+            push = push_out_of_bones(solids.fields, centres, radius + solids.clearance[bone],
+                                     solids.transforms, active)
+            x[:, points] += push.T
+
+
+def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
+          settings: SolverSettings | None = None, progress=None,
+          prepared: PreparedModel | None = None, start=None,
+          bone_solids: BoneSolids | None = None) -> QuasiStaticResult:
+    """The static equilibrium of the posed model with contacts (see
+    :mod:`muscle_mss.core.quasi_static`).
+
+    Arguments as :func:`muscle_mss.core.relaxation.solve`; ``start`` (n, 3) mm, input particle
+    order: the free particles' starting positions (warm start; omitted: the posed ones). Fixed
+    particles stay at their posed positions. ``bone_solids``: the bones as solids for the
+    muscle-bone contacts of the minimisation (the bone spheres then serve the final collision
+    passes only).
+    """
+    settings = settings or SolverSettings(method=METHOD_QUASI_STATIC)
+    check_settings(settings)
+    if bone_solids is not None:
+        bone_solids.check()
+    check_history_size(settings.iterations, len(model.names))
+    prep = prepared if prepared is not None else prepare(model)
+    pre = preconditioner(model, prep)
+    n = int(prep.offsets[-1])
+    posed = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)[prep.order]
+    x = np.ascontiguousarray(posed.T)
+    if start is not None:
+        begin = np.asarray(start, dtype=np.float64).reshape(-1, 3)
+        if begin.shape != (n, 3) or not np.isfinite(begin).all():
+            raise MuscleMSSError(f"the solver's start positions must be {n} finite points; got "
+                                 f"shape {begin.shape}")
+        x[:, pre.free] = begin[prep.order][pre.free].T
+    spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
+    energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
+                              float(settings.quasi_static.contact_weight) * pre.stiffest,
+                              bone_solids)
+    record, done, stopped_by, converged_loop, solve_seconds, position = _minimise(
+        prep, pre, settings, energy_of, spheres, progress)
+    x[:, pre.free] = position.T
+    return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, record,
+                   done, stopped_by, converged_loop, solve_seconds)
+
+
+def _minimise(prep, pre, settings, energy_of, spheres, progress):
+    """The L-BFGS iterations from the positions ``energy_of`` holds, until the tolerance, the
+    cap, the budget or a failed line search. Returns ``(record, iterations, stopped by,
+    converged, seconds in the direction, the last accepted free positions (f, 3) mm)``."""
+    tolerance = settings.quasi_static.tolerance
+    budget = settings.budget
+    free_muscle = prep.muscle[pre.free]
+    has_cage = np.diff(prep.cages.ptr) > 0
+    volume_stiffness = np.where(has_cage, float(settings.bulk_modulus)
+                                / prep.cages.rest_volume, 0.0)     # (M,) g/(mm^4 s^2)
+    step_limit = float(spheres.radius.max()) if spheres.count else np.inf
+    n_muscles = len(prep.offsets) - 1
+    sizes = np.maximum(np.diff(prep.offsets), 1)
+    cap = int(settings.iterations)
+    record = _record(cap, n_muscles)
+    solve_seconds = 0.0
+    started = time.perf_counter()
+    position = np.ascontiguousarray(energy_of.x[:, pre.free].T)
+    energy, gradient, volume_gradient = energy_of.evaluate(position)
+    history = LBFGSHistory(int(settings.quasi_static.history), len(pre.free))
+    done, converged, stopped_by = 0, False, TERMINATION_ITERATIONS
+    while done < cap:
+        record.muscle_pairs[done], record.bone_pairs[done], record.max_penetration[done] = \
+            energy_of.contact_figures()
+        record.energy[done] = energy
+        tick = time.perf_counter()
+        h0 = InitialInverseHessian(pre, free_muscle, volume_stiffness, volume_gradient)
+        step, largest, slope = _step(gradient, history, h0, record.residual, done, tolerance)
+        solve_seconds += time.perf_counter() - tick
+        done += 1
+        if largest <= tolerance:
+            converged, stopped_by = True, "tolerance"
+            record.seconds[done - 1] = time.perf_counter() - started
+            break
+        trial = _line_search(energy_of, position, energy, step, slope,
+                             min(1.0, step_limit / largest))
+        if trial is None:
+            energy_of.evaluate(position)
+            stopped_by = "line search"
+            record.seconds[done - 1] = time.perf_counter() - started
+            break
+        trial, trial_energy, trial_gradient, trial_volume = trial
+        moved = trial - position
+        change = trial_gradient - gradient
+        curvature = float(np.vdot(moved, change))
+        if settings.quasi_static.history and curvature > 1e-12 * float(np.linalg.norm(moved)
+                                                                       * np.linalg.norm(change)):
+            history.add(moved, change, 1.0 / curvature)
+        record.mean_move[done - 1] = np.bincount(free_muscle, np.sqrt(np.einsum(
+            "ij,ij->i", moved, moved)), minlength=n_muscles) / sizes
+        position, energy, gradient, volume_gradient = (trial, trial_energy, trial_gradient,
+                                                       trial_volume)
+        record.seconds[done - 1] = time.perf_counter() - started
+        if budget is not None and record.seconds[done - 1] >= budget:
+            stopped_by = TERMINATION_BUDGET
+            break
+        if progress is not None and progress(done / cap):
+            raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
+    return record, done, stopped_by, converged, solve_seconds, position
+
+
+def _step(gradient, history, h0, residual, done, tolerance):
+    """The quasi-Newton step of iteration ``done``: ``(step (f, 3) mm, its largest particle
+    move mm, slope of the energy along it)``, its largest move recorded in ``residual``. The
+    step counts as within the tolerance only once the distance still to go is too, and when
+    the plain preconditioned step (which bounds the force) is; a step that does not descend
+    is replaced by the plain one (the history dropped)."""
+    step = direction(gradient, history, h0)
+    largest = largest_move(step)
+    if not np.isfinite(largest):
+        raise MuscleMSSError(f"the quasi-static solve diverged at iteration {done + 1}: a "
+                             "particle's step is not finite; check stiffness and bulk "
+                             "modulus")
+    residual[done] = largest
+    if largest <= tolerance and not settled(residual[:done + 1], tolerance):
+        largest = max(largest, 2.0 * tolerance)     # not yet: keep going
+    elif largest <= tolerance and history:
+        # confirm with the plain step, which bounds the force
+        plain = -h0(gradient)
+        if largest_move(plain) > tolerance:
+            history.clear()
+            step, largest = plain, largest_move(plain)
+    slope = float(np.vdot(gradient, step))
+    if slope >= 0.0 and largest > 0.0:
+        history.clear()
+        step = -h0(gradient)
+        largest = largest_move(step)
+        slope = float(np.vdot(gradient, step))
+    return step, largest, slope
+
+
+def _line_search(energy_of, position, energy, step, slope, alpha):
+    """Backtracking line search on the energy (Armijo) from ``alpha``: ``(trial positions,
+    energy, gradient, volume gradient)`` of the accepted step, or None after
+    :data:`BACKTRACKS` halvings."""
+    for _ in range(BACKTRACKS):
+        trial = position + alpha * step
+        trial_energy, trial_gradient, trial_volume = energy_of.evaluate(trial)
+        rise = trial_energy - energy
+        if rise <= ARMIJO * alpha * slope + ENERGY_ROUNDING * abs(energy):
+            return trial, trial_energy, trial_gradient, trial_volume
+        # the minimum of the quadratic through E(0), E'(0) and E(alpha), kept in
+        # [alpha / 10, alpha / 2]
+        curve = rise - alpha * slope
+        guess = -slope * alpha * alpha / (2.0 * curve) if curve > 0.0 else 0.5 * alpha
+        alpha = min(max(guess, 0.1 * alpha), 0.5 * alpha)
+    return None
+
+
+def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, record, done,
+            stopped_by, converged_loop, solve_seconds) -> QuasiStaticResult:
+    """The solids' push and the paper method's final collision passes (they remove the
+    penalty's overlap), then the :class:`QuasiStaticResult`."""
+    touching = energy_of.deepest > 0.0
+    touching_solid = energy_of.solid_deepest > 0.0
+    if len(energy_of.solid_points):
+        push_out_of_solids(x, energy_of.solid_points, energy_of.solid_radius, bone_solids)
+    use_bvh = settings.structure == STRUCTURE_BVH
+    hashed, bone_table, lists = hash_state(spheres, not use_bvh)
+    solids = solid_state(bone_solids, x, prep)
+    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings), solids)
+    solid_collided = np.zeros(len(solids.points), dtype=np.uint8)
+    if len(energy_of.solid_points):     # the same particles, the same order
+        solid_collided[:] = touching_solid
+    collided_spheres = touching.astype(np.uint8)
+    v = np.zeros_like(x)
+    passes, left, projection_seconds = final_passes(
+        x, v, contacts, settings, lists, collided_spheres, solid_collided,
+        world_box(x.T, spheres.bone_centres.T))
+    phases = {"mss": float(energy_of.seconds[0] + solve_seconds),
+              "muscle_cd": float(energy_of.seconds[1]), "bone_cd": float(energy_of.seconds[2]),
+              "projection": projection_seconds}
+    return QuasiStaticResult(
+        **solved_state(prep, x, v, spheres, solids.points, collided_spheres, solid_collided),
+        mean_displacement=record.mean_move[:done].copy(),
+        muscle_pairs=record.muscle_pairs[:done].copy(),
+        bone_pairs=record.bone_pairs[:done].copy(),
+        max_penetration=record.max_penetration[:done].copy(),
+        seconds=record.seconds[:done].copy(), phase_seconds=phases, stopped_by=stopped_by,
+        rebuilds=energy_of.rebuilds, projection_passes=passes, remaining_penetration=left,
+        residual=record.residual[:done].copy(), energy=record.energy[:done].copy(),
+        converged=converged_loop and left <= settings.penetration_tolerance)

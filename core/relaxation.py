@@ -1,0 +1,370 @@
+"""The relaxation loop of the paper's §3.1 and §3.3: MSS update, then collision handling.
+
+Each iteration:
+
+1. mass-spring update (:func:`muscle_mss.core.mss.muscle_step`: Hooke + damping along the spring,
+   a viscous drag on the velocities and the pressure of each muscle's cage against a change of
+   its rest volume, semi-implicit Euler, fixed particles stay);
+2. collision detection among the boundary spheres of different muscles and between muscle
+   spheres and bone spheres, through the chosen structure (:mod:`~muscle_mss.core.spatial_hash`,
+   the default, or the paper's :mod:`~muscle_mss.core.octree_bvh`); both find the same pairs;
+   or, given the bones as solids (:class:`~muscle_mss.core.bone_distance.BoneSolids`),
+   muscle spheres against each bone's signed distance
+   (:mod:`~muscle_mss.core.solid_contacts`): a sphere
+   carried past a bone's shell of spheres is pushed on through it by the inner spheres, while
+   the distance gradient takes it out by the nearer side from any depth;
+3. response exactly as the paper: per colliding pair each sphere moves half the penetration along
+   the centre line (the whole when the other is fixed or a bone sphere; nothing when it is fixed
+   itself; against a solid, the whole way out to its radius plus the bone's clearance along the
+   distance gradient); the displacements are accumulated and applied after all tests, and the
+   particles that collided get zero velocity;
+4. per muscle the mean displacement ``mean |x_k - x_{k-1}|`` (the paper's figures 5 and 6), the
+   colliding pairs, the deepest penetration (of the pairs a response can resolve: a tendon
+   attachment, fixed, sits inside its bone for good) and the elapsed seconds are recorded.
+
+Terminations (:data:`~muscle_mss.core.settings.TERMINATIONS`): a fixed number of iterations; the mean displacement below a
+threshold (every muscle's, and not rising: the displacement first grows while the posed model
+starts to move, so a small value in the first iterations is no sign of rest); a wall-clock
+budget (checked after every iteration). ``iterations`` caps all three. A muscle whose mean
+displacement is not finite or exceeds its own size in one iteration has diverged: the solve
+stops with a :class:`MuscleMSSError` naming it.
+
+After the last iteration, collision passes without the MSS update
+(:func:`~muscle_mss.core.contacts.project`, the same
+detection and response) run until no pair of spheres of different objects overlaps by more
+than a tolerance (at most ``projection_passes``). One response leaves overlap behind wherever
+a sphere is pressed between two objects — a muscle sphere pushed by another muscle into a
+bone moves out of the bone by the whole bone penetration and back by half the muscle one —
+and in every iteration the springs push such a sphere back in; on the demo thigh at the most
+flexed pose a third of the mean sphere radius stays overlapped after 500 iterations without
+these passes, under the 0.01 mm default tolerance with them.
+
+The loop runs in Numba kernels of :data:`CHUNK_SECONDS` each; between chunks ``progress(f)`` is
+called and may return True to abort. Every sum has a fixed order: the same inputs give
+bitwise the same result on the same machine, whatever the thread count.
+"""
+from __future__ import annotations
+
+import time
+from collections import namedtuple
+
+import numpy as np
+from numba import njit, prange
+
+from .bone_distance import BoneSolids
+from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_spheres,
+                       contact_options, final_passes, gather_sphere, hash_state, respond_sphere,
+                       solved_state, world_box)
+from .errors import MuscleMSSError
+from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
+                    stability_problem)
+from .mss import mss_state, muscle_step, now
+from .settings import (STRUCTURE_HASH, STRUCTURES, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
+                       TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
+from .solid_contacts import respond_solids, solid_contacts_range, solid_state
+
+CHUNK_SECONDS = 0.1
+
+RUNNING, CONVERGED, OUT_OF_TIME, DIVERGED = range(4)
+
+IterationHistory = namedtuple("IterationHistory", (
+    "mean_displacement", "muscle_pairs", "bone_pairs", "max_penetration", "seconds", "phases"))
+IterationHistory.__doc__ = """One row per iteration: ``mean_displacement`` (K, M) mm,
+``muscle_pairs`` and ``bone_pairs`` (K,) colliding pairs, ``max_penetration`` (K,) mm,
+``seconds`` (K,) cumulative; ``phases`` (4,) s the totals of MSS, muscle CD, bone CD and the
+final passes."""
+
+RelaxationControl = namedtuple("RelaxationControl", (
+    "termination", "threshold", "budget", "limit", "box"))
+RelaxationControl.__doc__ = """When the loop stops: ``termination`` the index of the
+termination in :data:`~muscle_mss.core.settings.TERMINATIONS`, its ``threshold`` mm and
+``budget`` s; ``limit`` (M,) mm each muscle's divergence limit (:func:`_divergence_limits`) and
+``box`` (2, 3) mm the world box (:func:`~muscle_mss.core.contacts.world_box`)."""
+
+
+@njit(cache=True, parallel=True)
+def _step_and_gather(mss, particle, centres, disp, collided, sphere_ptr, box, escaped, solids,
+                     use_solids):
+    """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step` of ``mss``), each
+    muscle's sphere centres then gathered for the collision tests (the arrays of
+    :class:`~muscle_mss.core.contacts.SphereState`) and, with ``use_solids``, its particles
+    tested against the bones as solids
+    (:func:`~muscle_mss.core.solid_contacts.solid_contacts_range`; not timed apart: a clock in a
+    parallel region takes the GIL) — one parallel region: every region costs a thread wake-up
+    (~0.1 ms on a virtual machine), which is a large part of one iteration at N = 80.
+    ``escaped[m]`` is set when a sphere centre or a particle tested against the solids of
+    muscle ``m`` lies outside ``box`` or is not finite."""
+    x, offsets, solid_ptr = mss.x, mss.offsets, solids.ptr
+    for m in prange(offsets.shape[0] - 1):
+        muscle_step(m, mss)
+        inside = True
+        for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
+            gather_sphere(s, x, particle, centres, disp, collided)
+            for axis in range(3):
+                inside &= (centres[axis, s] >= box[0, axis]) & (centres[axis, s] <= box[1, axis])
+        if use_solids:
+            inside &= solid_contacts_range(solid_ptr[m], solid_ptr[m + 1], solids, box)
+        escaped[m] = not inside
+
+
+@njit(cache=True, inline="always")
+def _mean_step(x, x_prev, first, last):
+    """Mean distance (mm) particles ``first..last-1`` moved since ``x_prev``."""
+    total = 0.0
+    for p in range(first, last):
+        d2 = 0.0
+        for axis in range(3):
+            d2 += (x[axis, p] - x_prev[axis, p]) ** 2
+        total += np.sqrt(d2)
+    return total / max(last - first, 1)
+
+
+@njit(cache=True)
+def _first_set(flags):
+    """Index of the first nonzero entry of ``flags``, or -1."""
+    for m in range(flags.shape[0]):
+        if flags[m]:
+            return m
+    return -1
+
+
+@njit(cache=True)
+def _solve_chunk(mss, contacts, options, history, control, first, last, started, lists):
+    """Iterations ``first`` up to ``last`` (fewer when a termination stops the loop): the MSS
+    step of ``mss`` (:class:`~muscle_mss.core.mss.MSSState`), the collisions of ``contacts``
+    (:func:`~muscle_mss.core.contacts.collide`), the response; each iteration's row of
+    ``history`` (:class:`IterationHistory`), stopping as ``control``
+    (:class:`RelaxationControl`) says. Returns ``(status, iterations done, diverged muscle or
+    -1, list refreshes, lists)``."""
+    x, v, x_prev, offsets = mss.x, mss.v, mss.x_prev, mss.offsets
+    spheres, solids = contacts.spheres, contacts.solids
+    scratch = np.zeros(solids.points.shape[0], dtype=np.uint8)
+    mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
+    box = control.box
+    muscle_bone = options.muscle_bone
+    use_solids = solids.transforms.shape[0] > 0
+    escaped = np.zeros(offsets.shape[0] - 1, dtype=np.bool_)
+    status = RUNNING
+    bad = -1
+    rebuilds = 0
+    it = first
+    while it < last and status == RUNNING:
+        t0 = now()
+        _step_and_gather(mss, spheres.particle, spheres.centres, spheres.disp, spheres.collided,
+                         spheres.sphere_ptr, box, escaped, solids, muscle_bone and use_solids)
+        t1 = now()
+        bad = _first_set(escaped)
+        if bad >= 0:
+            # a sphere left the world box (or is not finite): stop before any collision
+            # structure indexes its grid or tree with it
+            for m in range(mean_disp.shape[1]):
+                mean_disp[it, m] = _mean_step(x, x_prev, offsets[m], offsets[m + 1])
+            seconds[it] = now() - started
+            status = DIVERGED
+            it += 1
+            break
+        mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = collide(
+            contacts, options, lists)
+        rebuilds += refreshed
+        t3 = now()
+        # the response: apply the displacements, stop the collided particles; each muscle's
+        # mean particle displacement of the iteration, mean |x - x_prev|
+        if muscle_bone:
+            respond_solids(x, v, solids, scratch)
+        _respond_and_measure(x, v, x_prev, offsets, spheres.particle, spheres.disp,
+                             spheres.collided, spheres.sphere_ptr, mean_disp[it])
+        t4 = now()
+        phases[0] += (t1 - t0) + (t4 - t3)
+        phases[1] += mm_seconds
+        phases[2] += mb_seconds
+        muscle_pairs[it] = mm_count
+        bone_pairs[it] = mb_count
+        max_pen[it] = deepest
+        seconds[it] = t4 - started
+        status, bad = _status(mean_disp, seconds, it, control)
+        it += 1
+    return status, it, bad, rebuilds, lists
+
+
+@njit(cache=True)
+def _status(mean_disp, seconds, it, control):
+    """``(status, diverged muscle or -1)`` after iteration ``it``: diverged when a muscle's
+    mean displacement exceeds its limit or is not finite, converged when every muscle's is
+    below the threshold and not rising (termination ``displacement threshold``), out of time
+    when the budget is spent (termination ``time budget``)."""
+    top = 0.0
+    for m in range(mean_disp.shape[1]):
+        if not mean_disp[it, m] <= control.limit[m]:
+            return DIVERGED, m
+        top = max(top, mean_disp[it, m])
+    if control.termination == 1 and it > 0 and top < control.threshold:
+        previous = 0.0
+        for m in range(mean_disp.shape[1]):
+            previous = max(previous, mean_disp[it - 1, m])
+        if top <= previous:
+            return CONVERGED, -1
+    if control.termination == 2 and seconds[it] >= control.budget:
+        return OUT_OF_TIME, -1
+    return RUNNING, -1
+
+
+@njit(cache=True, parallel=True)
+def _respond_and_measure(x, v, x_prev, offsets, particle, disp, collided, sphere_ptr,
+                         mean_disp):
+    """The response: the collided spheres' particles move by their displacements and stop;
+    each muscle's mean particle displacement of the iteration, mean ``|x - x_prev|`` mm, into
+    ``mean_disp`` (M,)."""
+    for m in prange(offsets.shape[0] - 1):
+        for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
+            if collided[s]:
+                respond_sphere(s, x, v, particle, disp)
+        mean_disp[m] = _mean_step(x, x_prev, offsets[m], offsets[m + 1])
+
+
+def check_settings(settings: SolverSettings) -> None:
+    if settings.termination not in TERMINATIONS:
+        raise MuscleMSSError(f"termination {settings.termination!r} is not one of "
+                             f"{', '.join(TERMINATIONS)}")
+    if settings.structure not in STRUCTURES:
+        raise MuscleMSSError(f"collision structure {settings.structure!r} is not one of "
+                             f"{', '.join(STRUCTURES)}")
+    if not (settings.projection_passes >= 0 and int(settings.projection_passes)
+            == settings.projection_passes):
+        raise MuscleMSSError(f"solver projection passes is {settings.projection_passes}; it "
+                             "must be a whole number, 0 or more")
+    for name, value in (("iterations", settings.iterations),
+                        ("time step", settings.relaxation.time_step),
+                        ("BVH max depth", settings.bvh_max_depth),
+                        ("BVH min primitives", settings.bvh_min_primitives)):
+        if not value > 0:
+            raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
+    for name, value in (("displacement threshold", settings.relaxation.displacement_threshold),
+                        ("time budget", settings.time_budget),
+                        ("drag", settings.relaxation.drag),
+                        ("penetration tolerance", settings.penetration_tolerance),
+                        ("bulk modulus", settings.bulk_modulus)):
+        if not (value >= 0.0 and np.isfinite(value)):
+            raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
+
+
+def _divergence_limits(positions, offsets, reach) -> np.ndarray:
+    """(M,) mm: a muscle's bounding-box diagonal plus ``reach`` (the farthest one collision
+    push can move a sphere) — no sane iteration moves its particles that far on average."""
+    limits = np.empty(len(offsets) - 1)
+    for m in range(len(limits)):
+        part = positions[offsets[m]:offsets[m + 1]]
+        size = 0.0
+        if len(part):
+            lower, upper = bounding_box(part)
+            size = float(np.linalg.norm(upper - lower))
+        limits[m] = size + reach + 1.0
+    return limits
+
+
+def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
+          settings: SolverSettings | None = None, progress=None,
+          prepared: PreparedModel | None = None,
+          bone_solids: BoneSolids | None = None) -> SolveResult:
+    """Relax the posed model with collisions (see the module docstring).
+
+    ``bone_centres`` (b, 3) mm, ``bone_radius`` (b,) mm, ``bone_id`` (b,) int, sorted, from
+    :func:`muscle_mss.core.bone_spheres.bone_spheres` on the posed bones (omit for no bones);
+    ``progress(fraction) -> bool`` is called between chunks, True aborts with a
+    :class:`MuscleMSSError`; ``prepared`` from :func:`~muscle_mss.core.model.prepare` for this
+    model's topology; ``bone_solids``: the bones as solids for the muscle-bone contacts, of the
+    iterations and the final passes (then give no bone spheres: they would be ignored).
+    """
+    settings = settings or SolverSettings()
+    check_settings(settings)
+    if bone_solids is not None:
+        bone_solids.check()
+    prep = prepared if prepared is not None else prepare(model)
+    problem = stability_problem(model, settings.relaxation.time_step, prep.stable_step)
+    if problem:
+        raise MuscleMSSError(problem)
+    check_history_size(settings.iterations, len(model.names))
+    offsets = prep.offsets
+    n = int(offsets[-1])
+    posed = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)[prep.order]
+    x = np.ascontiguousarray(posed.T)
+    v = np.zeros_like(x)
+    relaxation = settings.relaxation
+    mss = mss_state(x, v, np.zeros((3, 3, n)), prep.inv_mass, relaxation.time_step,
+                    relaxation.drag, settings.bulk_modulus, prep.cages, offsets, prep.layout)
+    spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
+    hashed, bone_table, lists = hash_state(spheres, settings.structure == STRUCTURE_HASH)
+    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings),
+                        solid_state(bone_solids, x, prep))
+    reach = (2.0 * (max(spheres.radius, default=0.0) + max(spheres.bone_radius, default=0.0))
+             + (bone_solids.reach if bone_solids is not None else 0.0))
+    control = RelaxationControl(
+        TERMINATIONS.index(settings.termination), float(relaxation.displacement_threshold),
+        float(settings.time_budget), _divergence_limits(posed, offsets, reach),
+        world_box(posed, spheres.bone_centres))
+    history, status, rebuilds, lists = _iterate(model, settings, mss, contacts, control, lists,
+                                                progress)
+    return _result(prep, settings, mss, spheres, contacts, control.box, lists, history, status,
+                   rebuilds)
+
+
+def _iterate(model, settings, mss, contacts, control, lists, progress):
+    """The iterations in chunks of about :data:`CHUNK_SECONDS` (``progress`` called between
+    them). Returns ``(history, status, rebuilds, lists)``, ``history`` trimmed to the
+    iterations run."""
+    cap = int(settings.iterations)
+    n_muscles = len(model.names)
+    history = IterationHistory(np.zeros((cap, n_muscles)), np.zeros(cap, dtype=np.int64),
+                               np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap),
+                               np.zeros(4))
+    options = contact_options(settings)
+    started = time.perf_counter()
+    done = 0
+    chunk = 1
+    status = RUNNING
+    rebuilds = 0
+    while done < cap and status == RUNNING:
+        before = done
+        tick = time.perf_counter()
+        status, done, bad, more, lists = _solve_chunk(
+            mss, contacts, options, history, control, done, min(cap, done + chunk), started,
+            lists)
+        rebuilds += more
+        per_iteration = (time.perf_counter() - tick) / max(done - before, 1)
+        chunk = int(min(max(CHUNK_SECONDS / max(per_iteration, 1e-9), 1), 1000))
+        if status == DIVERGED:
+            raise MuscleMSSError(
+                f"muscle '{model.names[bad]}' diverged at iteration {done}: its mean particle "
+                f"displacement was {history.mean_displacement[done - 1, bad]:.3g} mm in one "
+                f"iteration; lower the TimeStep (now {settings.relaxation.time_step} s) or "
+                "check stiffness and mass")
+        fraction = done / cap
+        if settings.termination == TERMINATION_BUDGET and settings.time_budget > 0:
+            fraction = max(fraction, history.seconds[done - 1] / settings.time_budget)
+        if progress is not None and status == RUNNING and done < cap and progress(fraction):
+            raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
+    trimmed = IterationHistory(*(column[:done].copy() for column in history[:-1]),
+                               history.phases)
+    return trimmed, status, rebuilds, lists
+
+
+def _result(prep, settings, mss, spheres, contacts, box, lists, history, status, rebuilds):
+    """The final collision passes (in the world ``box``), then the :class:`SolveResult` in the
+    input order."""
+    collided_spheres = contacts.spheres.collided[:spheres.count].copy()
+    solid_collided = contacts.solids.collided.copy()
+    passes, left, seconds = final_passes(mss.x, mss.v, contacts, settings, lists,
+                                         collided_spheres, solid_collided, box)
+    phases = history.phases
+    phases[3] += seconds
+    stopped_by = {RUNNING: TERMINATION_ITERATIONS, CONVERGED: TERMINATION_THRESHOLD,
+                  OUT_OF_TIME: TERMINATION_BUDGET}[status]
+    return SolveResult(
+        **solved_state(prep, mss.x, mss.v, spheres, contacts.solids.points, collided_spheres,
+                       solid_collided),
+        mean_displacement=history.mean_displacement, muscle_pairs=history.muscle_pairs,
+        bone_pairs=history.bone_pairs, max_penetration=history.max_penetration,
+        seconds=history.seconds,
+        phase_seconds={"mss": float(phases[0]), "muscle_cd": float(phases[1]),
+                       "bone_cd": float(phases[2]), "projection": float(phases[3])},
+        stopped_by=stopped_by, rebuilds=rebuilds, projection_passes=passes,
+        remaining_penetration=left)
