@@ -30,7 +30,7 @@ import time
 import numpy as np
 
 from muscle_mss.core import solver as S
-from muscle_mss.core.bone_distance import bone_distance_field
+from muscle_mss.core.bone_field_sampling import bone_distance_field
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_arm import demo_arm_scene
 from muscle_mss.core.demo_scene import demo_scene
