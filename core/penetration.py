@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 CELL_RADII = 1.0
 
 Spheres = namedtuple("Spheres", "centres radii owner free")
-Spheres.__doc__ = """Collision spheres as the overlap kernel takes them: ``centres`` (n, 3) float64 mm,
-``radii`` (n,) float64 mm, ``owner`` (n,) int64 (the object; -1 a bone) and ``free`` (n,) bool
-(the sphere may move)."""
+Spheres.__doc__ = """Collision spheres as the overlap kernel takes them: ``centres`` (n, 3)
+float64 mm, ``radii`` (n,) float64 mm, ``owner`` (n,) int64 (the object; -1 a bone) and ``free``
+(n,) bool (the sphere may move)."""
 
 CellGrid = namedtuple("CellGrid", "keys lower cell dims")
 CellGrid.__doc__ = """Cubic cells of ``cell`` mm from ``lower`` (3,) float64 mm, ``dims`` (3,) int64
