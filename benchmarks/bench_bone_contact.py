@@ -30,13 +30,13 @@ import time
 import numpy as np
 
 from muscle_mss.core import solver as S
-from muscle_mss.core.model import prepare
-from muscle_mss.core.solid_contacts import solid_points
-from muscle_mss.core.bone_distance import bone_distance_field
+from muscle_mss.core.bone_field_sampling import bone_distance_field
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_arm import demo_arm_scene
 from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.model import prepare
 from muscle_mss.core.motion import farthest_pose_index
+from muscle_mss.core.solid_contacts import solid_points
 from muscle_mss.core.settings import SolverSettings
 from muscle_mss.filters.collision_solver import solid_bones
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at

@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from muscle_mss.core import bone_distance as D
+from muscle_mss.core import bone_field_sampling as S
 from muscle_mss.core.demo_scene import demo_scene
 
 from bench_solver import cpu_model
@@ -34,7 +35,7 @@ def warm_up():
                       dtype=float) * 5.0
     triangles = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5],
                           [3, 1, 5], [0, 3, 5]])
-    fields = D.bone_field_set([(points, triangles)])
+    fields = S.bone_field_set([(points, triangles)])
     D.signed_distances(fields, points)
     D.push_out_of_bones(fields, points, np.ones(len(points)))
 
@@ -45,7 +46,7 @@ def main(spacing):
     rows, fields = [], []
     for name, bone in scene.bones.items():
         start = time.perf_counter()
-        field = D.bone_distance_field(bone.points, bone.triangles, spacing=spacing,
+        field = S.bone_distance_field(bone.points, bone.triangles, spacing=spacing,
                                       where=f"bone '{name}'")
         seconds = time.perf_counter() - start
         fields.append(field)
@@ -72,8 +73,8 @@ def main(spacing):
         f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} "
         f"({numba.get_num_threads()} threads), numpy {np.__version__}, Python "
         f"{platform.python_version()}. Fine spacing {spacing:g} mm, bricks of {D.BRICK}^3 cells, "
-        f"coarse nodes every {D.COARSE * spacing:g} mm, band {D.DEFAULT_BAND:g} mm, padding "
-        f"{D.DEFAULT_PADDING:g} mm, float32 values. Load average (1 min) after each build.", "",
+        f"coarse nodes every {D.COARSE * spacing:g} mm, band {S.DEFAULT_BAND:g} mm, padding "
+        f"{S.DEFAULT_PADDING:g} mm, float32 values. Load average (1 min) after each build.", "",
         "| bone | triangles | box (mm) | fine bricks | bricks in box | build s | memory MiB | "
         "dense grid MiB | dense / sparse | load |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -96,4 +97,4 @@ def main(spacing):
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else D.DEFAULT_SPACING)
+    main(float(sys.argv[1]) if len(sys.argv) > 1 else S.DEFAULT_SPACING)

@@ -40,9 +40,9 @@ from functools import partial
 
 import numpy as np
 
-from .demo_geometry import (MuscleSpec, SampledField, Size, around, build_muscle, ellipsoid,
-                            frame, make_envelopes, mesh_sampled, project_to_surface,
-                            rotation_about, round_cone, smooth_union, sphere, v)
+from .demo_geometry import (MuscleSpec, Size, around, build_muscle, ellipsoid, frame,
+                            make_envelopes, rotation_about, round_cone, smooth_union, sphere, v)
+from .implicit_meshing import SampledField, mesh_sampled, project_to_surface
 from .errors import MuscleMSSError
 from .scene import Motion, Scene
 

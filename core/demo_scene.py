@@ -23,11 +23,13 @@ from functools import partial
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from .demo_geometry import (MuscleSpec as _MuscleSpec, SampledField, Size as _Size,  # noqa: F401
+from .demo_geometry import (MuscleSpec as _MuscleSpec, Size as _Size,  # noqa: F401
                             around, build_muscle, compose as _compose, ellipsoid as _ellipsoid,
-                            frame as _frame, make_envelopes, mesh_implicit, mesh_sampled,
-                            project_to_surface, rotation_about, round_cone as _round_cone,
-                            smooth_union as _blend, sphere as _sphere, v as _v)
+                            frame as _frame, make_envelopes, rotation_about,
+                            round_cone as _round_cone, smooth_union as _blend, sphere as _sphere,
+                            v as _v)
+from .implicit_meshing import (SampledField, mesh_implicit, mesh_sampled,  # noqa: F401
+                               project_to_surface)
 from .errors import MuscleMSSError
 from .scene import Motion, Scene, Surface
 

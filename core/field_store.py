@@ -1,13 +1,13 @@
 """Bones' signed distance fields kept on disk between runs.
 
-Sampling a bone's field (:func:`muscle_mss.core.bone_distance.bone_distance_field`) takes 2-4 s
-per bone of the demo thigh, paid at the first time point of every ``muscle-mss run`` and every
-ParaView session although the bones of a scene rarely change (issue 15). A field is stored per
-bone surface, keyed by its triangles and its points bitwise, in a
+Sampling a bone's field (:func:`muscle_mss.core.bone_field_sampling.bone_distance_field`) takes
+2-4 s per bone of the demo thigh, paid at the first time point of every ``muscle-mss run`` and
+every ParaView session although the bones of a scene rarely change (issue 15). A field is stored
+per bone surface, keyed by its triangles and its points bitwise, in a
 :class:`~muscle_mss.core.disk_store.DiskStore` keyed by the sampler's source
-(``bone_distance.py``, which holds the sampling defaults) and the runtime, so that a changed
-sampler or another Numba or NumPy never reads another's values: a loaded field is bitwise the
-one sampling would give.
+(:data:`SAMPLER_SOURCES`: the field's layout, the sampling and its defaults, the exact distance)
+and the runtime, so that a changed sampler or another Numba or NumPy never reads another's
+values: a loaded field is bitwise the one sampling would give.
 
 The folder is ``bone-fields-<digest>-<runtime>`` under the package's cache folder
 (:func:`~muscle_mss.core.kernel_cache.base_cache_dir`). The environment variable
@@ -26,9 +26,11 @@ from .disk_store import DiskStore
 ENVIRONMENT = "MUSCLE_MSS_BONE_FIELDS"
 MAX_FILES = 64
 _ARRAYS = ("origin", "dims", "coarse", "brick_index", "bricks")
-STORE = DiskStore("bone-fields", ENVIRONMENT,
-                  (os.path.join(os.path.dirname(os.path.abspath(__file__)), "bone_distance.py"),),
-                  MAX_FILES)
+SAMPLER_SOURCES = tuple(os.path.join(os.path.dirname(os.path.abspath(__file__)), name)
+                        for name in ("bone_distance.py", "bone_field_sampling.py",
+                                     "triangle_distance.py"))
+"""The source files whose bytes key the store: a field sampled by other code is not read."""
+STORE = DiskStore("bone-fields", ENVIRONMENT, SAMPLER_SOURCES, MAX_FILES)
 
 
 def store_folder() -> str | None:
@@ -37,7 +39,7 @@ def store_folder() -> str | None:
 
 
 def load(key: str) -> BoneDistanceField | None:
-    """The stored field of surface ``key`` (:func:`~muscle_mss.core.bone_distance.
+    """The stored field of surface ``key`` (:func:`~muscle_mss.core.triangle_distance.
     surface_digest`), or None when the store is off, holds none, or its file cannot be read."""
     stored = STORE.load(key, ("spacing",) + _ARRAYS)
     if stored is None:

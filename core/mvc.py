@@ -51,6 +51,101 @@ def _arc(ax, ay, az, bx, by, bz):
 
 
 @numba.njit(cache=True)
+def _directions_to_vertices(cage_points, x, eps_distance, unit, distance):
+    """Unit directions ``unit`` (m, 3) and distances ``distance`` (m,) mm from point ``x`` (3,)
+    to the cage vertices; returns the first vertex within ``eps_distance`` mm of x (then the
+    scratch is left partly filled), or -1."""
+    for j in range(cage_points.shape[0]):
+        dx = cage_points[j, 0] - x[0]
+        dy = cage_points[j, 1] - x[1]
+        dz = cage_points[j, 2] - x[2]
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if d <= eps_distance:
+            return j
+        unit[j, 0] = dx / d
+        unit[j, 1] = dy / d
+        unit[j, 2] = dz / d
+        distance[j] = d
+    return -1
+
+
+@numba.njit(cache=True)
+def _add_triangle_weights(t, cage_triangles, normals, unit, distance, eps_distance,
+                          eps_unitless, row):
+    """Add triangle t's contribution to the unnormalised weights ``row`` (m,) of a point seen
+    in the directions ``unit`` (m, 3) at the distances ``distance`` (m,) mm, and return False;
+    or, when the point lies on the triangle (edges included), overwrite ``row`` with its
+    barycentric weights and return True."""
+    i0 = cage_triangles[t, 0]
+    i1 = cage_triangles[t, 1]
+    i2 = cage_triangles[t, 2]
+    u0x, u0y, u0z, d0 = unit[i0, 0], unit[i0, 1], unit[i0, 2], distance[i0]
+    u1x, u1y, u1z, d1 = unit[i1, 0], unit[i1, 1], unit[i1, 2], distance[i1]
+    u2x, u2y, u2z, d2 = unit[i2, 0], unit[i2, 1], unit[i2, 2], distance[i2]
+    # c_k = u_{k+1} x u_{k+2}: normal of the spherical triangle's side opposite vertex k,
+    # of length sin(theta_k).
+    c0x = u1y * u2z - u1z * u2y
+    c0y = u1z * u2x - u1x * u2z
+    c0z = u1x * u2y - u1y * u2x
+    c1x = u2y * u0z - u2z * u0y
+    c1y = u2z * u0x - u2x * u0z
+    c1z = u2x * u0y - u2y * u0x
+    c2x = u0y * u1z - u0z * u1y
+    c2y = u0z * u1x - u0x * u1z
+    c2z = u0x * u1y - u0y * u1x
+    det = u0x * c0x + u0y * c0y + u0z * c0z
+    nx, ny, nz = normals[t, 0], normals[t, 1], normals[t, 2]
+    nn = nx * nx + ny * ny + nz * nz
+    beside = False
+    if nn > 0.0:
+        # Signed barycentric coordinates of x's projection on the plane: the areas of the
+        # sub-triangles (x, p_{k+1}, p_{k+2}) = d_{k+1} d_{k+2} c_k / 2 over the area.
+        b0 = d1 * d2 * (c0x * nx + c0y * ny + c0z * nz) / nn
+        b1 = d2 * d0 * (c1x * nx + c1y * ny + c1z * nz) / nn
+        b2 = d0 * d1 * (c2x * nx + c2y * ny + c2z * nz) / nn
+        beside = b0 < -eps_unitless or b1 < -eps_unitless or b2 < -eps_unitless
+        height = d0 * (u0x * nx + u0y * ny + u0z * nz) / math.sqrt(nn)
+        if not beside and abs(height) <= eps_distance:
+            _set_barycentric(row, i0, i1, i2, max(b0, 0.0), max(b1, 0.0), max(b2, 0.0))
+            return True
+    sin0 = math.sqrt(c0x * c0x + c0y * c0y + c0z * c0z)
+    sin1 = math.sqrt(c1x * c1x + c1y * c1y + c1z * c1z)
+    sin2 = math.sqrt(c2x * c2x + c2y * c2y + c2z * c2z)
+    if sin0 == 0.0 or sin1 == 0.0 or sin2 == 0.0 or det == 0.0:
+        return False
+    if beside and abs(det) <= eps_unitless:
+        # x beside the triangle and (almost) in its plane: the spherical triangle has
+        # (almost) no area, and its mean vector below would be all rounding error.
+        return False
+    # Mean vector (the integral of the unit direction over the spherical triangle, its
+    # sign that of det): sum_k theta_k / 2 * c_k / |c_k|, theta_k the arc opposite k.
+    a0 = 0.5 * _arc(u1x, u1y, u1z, u2x, u2y, u2z) / sin0
+    a1 = 0.5 * _arc(u2x, u2y, u2z, u0x, u0y, u0z) / sin1
+    a2 = 0.5 * _arc(u0x, u0y, u0z, u1x, u1y, u1z) / sin2
+    mx = a0 * c0x + a1 * c1x + a2 * c2x
+    my = a0 * c0y + a1 * c1y + a2 * c2y
+    mz = a0 * c0z + a1 * c1z + a2 * c2z
+    # m = sum_k w_k d_k u_k; dotting with c_k isolates w_k. The signed det makes faces
+    # seen from outside count negatively, as the closed-surface integral requires.
+    row[i0] += (c0x * mx + c0y * my + c0z * mz) / (d0 * det)
+    row[i1] += (c1x * mx + c1y * my + c1z * mz) / (d1 * det)
+    row[i2] += (c2x * mx + c2y * my + c2z * mz) / (d2 * det)
+    return False
+
+
+@numba.njit(cache=True)
+def _set_barycentric(row, i0, i1, i2, b0, b1, b2):
+    """``row`` (m,): zero but the normalised non-negative barycentric weights b0, b1, b2 of the
+    vertices i0, i1, i2 (a point on their triangle)."""
+    total = b0 + b1 + b2
+    for j in range(row.shape[0]):
+        row[j] = 0.0
+    row[i0] += b0 / total
+    row[i1] += b1 / total
+    row[i2] += b2 / total
+
+
+@numba.njit(cache=True)
 def _point_weights(cage_points, cage_triangles, normals, x, eps_distance, eps_unitless, unit,
                    distance, row):
     """Fill ``row`` (m,) with the normalised weights of point ``x`` (3,).
@@ -61,82 +156,14 @@ def _point_weights(cage_points, cage_triangles, normals, x, eps_distance, eps_un
     m = cage_points.shape[0]
     for j in range(m):
         row[j] = 0.0
-    for j in range(m):
-        dx = cage_points[j, 0] - x[0]
-        dy = cage_points[j, 1] - x[1]
-        dz = cage_points[j, 2] - x[2]
-        d = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if d <= eps_distance:
-            row[j] = 1.0
-            return
-        unit[j, 0] = dx / d
-        unit[j, 1] = dy / d
-        unit[j, 2] = dz / d
-        distance[j] = d
+    on_vertex = _directions_to_vertices(cage_points, x, eps_distance, unit, distance)
+    if on_vertex >= 0:
+        row[on_vertex] = 1.0
+        return
     for t in range(cage_triangles.shape[0]):
-        i0 = cage_triangles[t, 0]
-        i1 = cage_triangles[t, 1]
-        i2 = cage_triangles[t, 2]
-        u0x, u0y, u0z, d0 = unit[i0, 0], unit[i0, 1], unit[i0, 2], distance[i0]
-        u1x, u1y, u1z, d1 = unit[i1, 0], unit[i1, 1], unit[i1, 2], distance[i1]
-        u2x, u2y, u2z, d2 = unit[i2, 0], unit[i2, 1], unit[i2, 2], distance[i2]
-        # c_k = u_{k+1} x u_{k+2}: normal of the spherical triangle's side opposite vertex k,
-        # of length sin(theta_k).
-        c0x = u1y * u2z - u1z * u2y
-        c0y = u1z * u2x - u1x * u2z
-        c0z = u1x * u2y - u1y * u2x
-        c1x = u2y * u0z - u2z * u0y
-        c1y = u2z * u0x - u2x * u0z
-        c1z = u2x * u0y - u2y * u0x
-        c2x = u0y * u1z - u0z * u1y
-        c2y = u0z * u1x - u0x * u1z
-        c2z = u0x * u1y - u0y * u1x
-        det = u0x * c0x + u0y * c0y + u0z * c0z
-        nx, ny, nz = normals[t, 0], normals[t, 1], normals[t, 2]
-        nn = nx * nx + ny * ny + nz * nz
-        beside = False
-        if nn > 0.0:
-            # Signed barycentric coordinates of x's projection on the plane: the areas of the
-            # sub-triangles (x, p_{k+1}, p_{k+2}) = d_{k+1} d_{k+2} c_k / 2 over the area.
-            b0 = d1 * d2 * (c0x * nx + c0y * ny + c0z * nz) / nn
-            b1 = d2 * d0 * (c1x * nx + c1y * ny + c1z * nz) / nn
-            b2 = d0 * d1 * (c2x * nx + c2y * ny + c2z * nz) / nn
-            beside = b0 < -eps_unitless or b1 < -eps_unitless or b2 < -eps_unitless
-            height = d0 * (u0x * nx + u0y * ny + u0z * nz) / math.sqrt(nn)
-            if not beside and abs(height) <= eps_distance:
-                # x lies on the triangle, edges included: its barycentric weights.
-                b0 = max(b0, 0.0)
-                b1 = max(b1, 0.0)
-                b2 = max(b2, 0.0)
-                total = b0 + b1 + b2
-                for j in range(m):
-                    row[j] = 0.0
-                row[i0] += b0 / total
-                row[i1] += b1 / total
-                row[i2] += b2 / total
-                return
-        sin0 = math.sqrt(c0x * c0x + c0y * c0y + c0z * c0z)
-        sin1 = math.sqrt(c1x * c1x + c1y * c1y + c1z * c1z)
-        sin2 = math.sqrt(c2x * c2x + c2y * c2y + c2z * c2z)
-        if sin0 == 0.0 or sin1 == 0.0 or sin2 == 0.0 or det == 0.0:
-            continue
-        if beside and abs(det) <= eps_unitless:
-            # x beside the triangle and (almost) in its plane: the spherical triangle has
-            # (almost) no area, and its mean vector below would be all rounding error.
-            continue
-        # Mean vector (the integral of the unit direction over the spherical triangle, its
-        # sign that of det): sum_k theta_k / 2 * c_k / |c_k|, theta_k the arc opposite k.
-        a0 = 0.5 * _arc(u1x, u1y, u1z, u2x, u2y, u2z) / sin0
-        a1 = 0.5 * _arc(u2x, u2y, u2z, u0x, u0y, u0z) / sin1
-        a2 = 0.5 * _arc(u0x, u0y, u0z, u1x, u1y, u1z) / sin2
-        mx = a0 * c0x + a1 * c1x + a2 * c2x
-        my = a0 * c0y + a1 * c1y + a2 * c2y
-        mz = a0 * c0z + a1 * c1z + a2 * c2z
-        # m = sum_k w_k d_k u_k; dotting with c_k isolates w_k. The signed det makes faces
-        # seen from outside count negatively, as the closed-surface integral requires.
-        row[i0] += (c0x * mx + c0y * my + c0z * mz) / (d0 * det)
-        row[i1] += (c1x * mx + c1y * my + c1z * mz) / (d1 * det)
-        row[i2] += (c2x * mx + c2y * my + c2z * mz) / (d2 * det)
+        if _add_triangle_weights(t, cage_triangles, normals, unit, distance, eps_distance,
+                                 eps_unitless, row):
+            return
     total = 0.0
     for j in range(m):
         total += row[j]

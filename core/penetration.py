@@ -6,6 +6,8 @@ response aims at spheres of different objects that just touch, so the remaining 
 measures how far a solve is from that. It measures spheres, not the surface the user sees:
 surface vertices in bones are reported by the MVC Surface Deformer.
 """
+from collections import namedtuple
+
 import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
@@ -15,6 +17,15 @@ from scipy.spatial import cKDTree
 # at 1.0, 22 ms at 2.0, 25 ms at 0.5; 40 ms with cells of 2.0 where each of the 27 cells around
 # a sphere was found by its own binary search (before rows of cells were scanned as runs).
 CELL_RADII = 1.0
+
+Spheres = namedtuple("Spheres", "centres radii owner free")
+Spheres.__doc__ = """Collision spheres as the overlap kernel takes them: ``centres`` (n, 3)
+float64 mm, ``radii`` (n,) float64 mm, ``owner`` (n,) int64 (the object; -1 a bone) and ``free``
+(n,) bool (the sphere may move)."""
+
+CellGrid = namedtuple("CellGrid", "keys lower cell dims")
+CellGrid.__doc__ = """Cubic cells of ``cell`` mm from ``lower`` (3,) float64 mm, ``dims`` (3,) int64
+per axis, numbered x-major; ``keys`` (n,) int64 the ascending cell of each sorted sphere."""
 
 
 def _spheres(centres, radii, owner, bone_centres, bone_radii, fixed):
@@ -89,9 +100,10 @@ def max_penetration_pairs(centres, radii, owner, n_objects, bone_centres=None,
     keys = _cell_keys(centres_all, lower, cell, dims)
     order = np.argsort(keys, kind="stable")
     per_sphere = np.empty(len(centres))
-    _deepest_per_sphere(centres, radii, owner, free, centres_all[order], radii_all[order],
-                        owner_all[order], free_all[order], keys[order], lower, cell, dims,
-                        per_sphere)
+    _deepest_per_sphere(Spheres(centres, radii, owner, free),
+                        Spheres(centres_all[order], radii_all[order], owner_all[order],
+                                free_all[order]),
+                        CellGrid(keys[order], lower, cell, dims), per_sphere)
     np.maximum.at(deepest, owner, per_sphere)
     return deepest
 
@@ -123,13 +135,16 @@ def _cell_span(centre, reach, lower, cell, dims):
 
 
 @njit(cache=True, parallel=True)
-def _deepest_per_sphere(centres, radii, owner, free, sorted_centres, sorted_radii,
-                        sorted_owner, sorted_free, sorted_keys, lower, cell, dims, out):
-    """``out[i]``: deepest overlap (mm, >= 0) of muscle sphere ``i`` with the spheres
-    ``sorted_*`` (all spheres sorted by their cell ``sorted_keys``, cells of size ``cell`` from
-    ``lower``, ``dims`` per axis) of other objects, pairs with a free sphere only; scans the
-    cells within ``radii[i]`` plus the largest radius of sphere ``i``'s centre, a run of
-    consecutive keys per row of cells."""
+def _deepest_per_sphere(muscle, everyone, grid, out):
+    """``out[i]``: deepest overlap (mm, >= 0) of sphere ``i`` of ``muscle`` (:class:`Spheres`)
+    with the spheres ``everyone`` (all spheres sorted by their cell ``grid.keys``,
+    :class:`CellGrid`) of other objects, pairs with a free sphere only; scans the cells within
+    ``radii[i]`` plus the largest radius of sphere ``i``'s centre, a run of consecutive keys per
+    row of cells."""
+    centres, radii, owner, free = muscle.centres, muscle.radii, muscle.owner, muscle.free
+    sorted_centres, sorted_radii = everyone.centres, everyone.radii
+    sorted_owner, sorted_free, sorted_keys = everyone.owner, everyone.free, grid.keys
+    lower, cell, dims = grid.lower, grid.cell, grid.dims
     reach_all = sorted_radii.max() if len(sorted_radii) else 0.0
     for i in prange(len(centres)):
         reach = radii[i] + reach_all

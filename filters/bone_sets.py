@@ -24,8 +24,9 @@ from collections import OrderedDict
 
 import numpy as np
 
-from muscle_mss.core.bone_distance import (BoneFieldSet, bone_distance_field,
-                                           inside_surface, signed_distances, surface_digest)
+from muscle_mss.core.bone_distance import BoneFieldSet, signed_distances
+from muscle_mss.core.bone_field_sampling import bone_distance_field
+from muscle_mss.core.triangle_distance import inside_surface, surface_digest
 from muscle_mss.core import field_store
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
@@ -145,7 +146,7 @@ def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", us
 
 
 def cached_bone_field(points, triangles, where: str = "bone", digest=None):
-    """The signed distance field of one bone surface (:func:`muscle_mss.core.bone_distance.
+    """The signed distance field of one bone surface (:func:`muscle_mss.core.bone_field_sampling.
     bone_distance_field`, default spacing) through a rigid-bone cache like the spheres': the
     field of the first surface of this shape, and the (3, 4) transform from that field's frame
     to ``points``. A shape not in memory is read from the disk store of earlier runs

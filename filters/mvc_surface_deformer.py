@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from muscle_mss.core import mvc
-from muscle_mss.core.bone_distance import (DEFAULT_SPACING, BoneFieldSet, bone_distance_field,
-                                           push_out_of_bones, signed_distances)
+from muscle_mss.core.bone_distance import BoneFieldSet, push_out_of_bones, signed_distances
+from muscle_mss.core.bone_field_sampling import DEFAULT_SPACING, bone_distance_field
 from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
 from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError

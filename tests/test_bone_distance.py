@@ -2,11 +2,12 @@
 import numpy as np
 import pytest
 
-from muscle_mss.core.bone_distance import (BRICK, COARSE, BoneFieldSet, bone_distance_field,
-                                           bone_field_set, exact_signed_distance,
-                                           inside_surface, push_out_of_bones, reference_push_out,
-                                           reference_signed_distance, signed_distances)
+from muscle_mss.core.bone_distance import (BRICK, COARSE, BoneFieldSet, push_out_of_bones,
+                                           signed_distances)
+from muscle_mss.core.bone_field_sampling import bone_distance_field, bone_field_set
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.triangle_distance import exact_signed_distance, inside_surface
+from reference_distance import reference_push_out, reference_signed_distance
 
 
 def box_mesh(lower, upper):
@@ -68,23 +69,23 @@ def test_exact_distance_matches_the_brute_force_reference_inside_and_out():
 
 
 def test_a_surface_is_prepared_once_while_it_stays_bitwise_the_same():
-    from muscle_mss.core import bone_distance
-    bone_distance._SURFACES.clear()
+    from muscle_mss.core import triangle_distance
+    triangle_distance.PREPARED_SURFACES.clear()
     points, triangles = sphere_mesh(10.0, levels=2)
     queries = np.random.default_rng(2).uniform(-15, 15, (50, 3))
     first = exact_signed_distance(points, triangles, queries)
-    prepared = list(bone_distance._SURFACES.values())
+    prepared = list(triangle_distance.PREPARED_SURFACES.values())
     np.testing.assert_array_equal(exact_signed_distance(points.copy(), triangles, queries), first)
-    assert list(bone_distance._SURFACES.values()) == prepared and len(prepared) == 1
+    assert list(triangle_distance.PREPARED_SURFACES.values()) == prepared and len(prepared) == 1
     moved = points + [0.5, 0.0, 0.0]                     # another surface: prepared afresh
     np.testing.assert_allclose(exact_signed_distance(moved, triangles, queries + [0.5, 0, 0]),
                                first, atol=1e-12)
-    assert len(bone_distance._SURFACES) == 2
+    assert len(triangle_distance.PREPARED_SURFACES) == 2
     open_surface = triangles[1:]                         # refused every time, never kept
     for _ in range(2):
         with pytest.raises(MuscleMSSError, match="open"):
             exact_signed_distance(points, open_surface, queries)
-    assert len(bone_distance._SURFACES) == 2
+    assert len(triangle_distance.PREPARED_SURFACES) == 2
 
 
 def test_sphere_field_matches_the_analytic_distance_within_half_a_cell():
@@ -150,9 +151,9 @@ def test_the_fields_error_bound_holds_and_inside_is_measured_only_near_the_surfa
     assert np.abs(sampled - exact)[in_box].max() <= field.error_bound
     assert (sampled[~in_box] >= exact[~in_box] - 1e-9).all() and (exact[~in_box] > 0).all()
     measured = []
-    import muscle_mss.core.bone_distance as B
-    real = B.exact_signed_distance
-    monkeypatch.setattr(B, "exact_signed_distance",
+    import muscle_mss.core.triangle_distance as T
+    real = T.exact_signed_distance
+    monkeypatch.setattr(T, "exact_signed_distance",
                         lambda p, t, q, where="": measured.append(len(q)) or real(p, t, q, where))
     inside = inside_surface(points, triangles, queries, sampled, field.error_bound)
     np.testing.assert_array_equal(inside, exact < 0.0)

@@ -124,7 +124,8 @@ def test_final_passes_free_a_sphere_pressed_between_a_bone_and_another_muscle(st
 
 def box_solid(lower, upper, clearance):
     """One box bone as a solid (rest pose) and its mesh."""
-    from muscle_mss.core.bone_distance import BoneSolids, bone_field_set
+    from muscle_mss.core.bone_distance import BoneSolids
+    from muscle_mss.core.bone_field_sampling import bone_field_set
     from test_bone_distance import box_mesh
     box = box_mesh(lower, upper)
     return BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance])), box
@@ -135,7 +136,7 @@ def test_solid_bone_takes_spheres_out_from_any_depth_in_one_response(structure):
     """Issue 14: a sphere 5 mm inside a box bone and one at its very centre (where the distance
     gradient vanishes) both end their radius plus the clearance outside it after one paper
     response; a fixed (tendon) sphere inside stays; the one 5 mm deep leaves by the near face."""
-    from muscle_mss.core.bone_distance import reference_signed_distance
+    from reference_distance import reference_signed_distance
     clearance, radii = 0.5, np.array([1.0, 1.5, 1.0])
     solids, box = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], clearance)
     model = loose_model([[1.0, 2.0, 5.0], [0.0, 0.0, 0.0], [0.0, 0.0, -8.0]], radii,
@@ -161,7 +162,7 @@ def test_solid_bone_keeps_out_particles_without_a_sphere_unless_inside_at_rest()
     to its radius, one without a sphere (interior, radius 0) to the surface; a particle inside
     the bone at rest (embedded next to its tendon) stays where it is, and so does a fixed one.
     Without it, only the spheres are kept out."""
-    from muscle_mss.core.bone_distance import reference_signed_distance
+    from reference_distance import reference_signed_distance
     solids, box = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], 0.0)
     positions = [[1.0, 2.0, 8.0], [2.0, -1.0, 7.0], [-3.0, 0.0, 6.0], [0.0, 3.0, -9.0]]
     model = loose_model(positions, [1.0, 0.0, 0.0, 0.0], [0, 0, 0, 0],

@@ -300,7 +300,8 @@ def chain_in_a_box(face):
     """The chain of chain_on_a_ball and a box bone reaching from below its strands to its +x
     face at ``face`` mm, spanning the chain's width and its middle (z 4.5 to 10.5 mm), as a
     solid with a 0.5 mm clearance: ``(model, box mesh, BoneSolids, inside at the start)``."""
-    from muscle_mss.core.bone_distance import bone_field_set, reference_signed_distance
+    from muscle_mss.core.bone_field_sampling import bone_field_set
+    from reference_distance import reference_signed_distance
     from test_bone_distance import box_mesh
     model, _ = chain_on_a_ball()
     box = box_mesh([-10.0, -10.0, 4.5], [face, 12.0, 10.5])
@@ -313,7 +314,7 @@ def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
     box's +x face (the box spans the chain's width and more): every free sphere ends its radius
     plus the clearance outside, on the +x side, where the bone's sphere shell would let the
     deeper strand be pulled through."""
-    from muscle_mss.core.bone_distance import reference_signed_distance
+    from reference_distance import reference_signed_distance
     model, box, solids, inside = chain_in_a_box(3.0)
     clearance = solids.clearance[0]
     assert inside.sum() == 8 and not (inside & model.fixed).any()
@@ -361,7 +362,8 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
     mm from the z faces): after the relaxation every free sphere is its radius plus the
     clearance outside the box (within the final passes' PenetrationTolerance), the strand
     that was inside on the +x side."""
-    from muscle_mss.core.bone_distance import reference_signed_distance, signed_distances
+    from muscle_mss.core.bone_distance import signed_distances
+    from reference_distance import reference_signed_distance
     model, box, solids, inside = chain_in_a_box(1.0)
     clearance = solids.clearance[0]
     assert inside.sum() == 4 and not (inside & model.fixed).any()
@@ -377,7 +379,7 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
 
 
 def test_solid_bones_are_checked():
-    from muscle_mss.core.bone_distance import bone_field_set
+    from muscle_mss.core.bone_field_sampling import bone_field_set
     from test_bone_distance import box_mesh
     model, _ = chain_on_a_ball()
     fields = bone_field_set([box_mesh([0, 0, 0], [1, 1, 1])])
