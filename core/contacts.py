@@ -21,12 +21,13 @@ from __future__ import annotations
 import time
 from collections import namedtuple
 
+import numba
 import numpy as np
 from numba import njit, prange
 
-from . import octree_bvh, spatial_hash
+from . import octree_bvh, spatial_hash, sphere_lists
 from .model import PreparedModel
-from .mss import Spheres, make_spheres, now
+from .collision_spheres import Spheres, make_spheres
 from .settings import STRUCTURE_BVH, SolverSettings
 from .solid_contacts import respond_solids, solid_contacts
 
@@ -34,6 +35,14 @@ from .solid_contacts import respond_solids, solid_contacts
 # the responses' displacements did not fall below PROGRESS times its least so far.
 STALLED_PASSES = 10
 PROGRESS = 0.95
+
+@njit(cache=True)
+def now():
+    """Wall-clock seconds (for the per-iteration timings inside kernels)."""
+    with numba.objmode(t="float64"):
+        t = time.perf_counter()
+    return t
+
 
 SphereState = namedtuple("SphereState", (
     "particle", "radius", "muscle", "fixed", "moves", "centres", "disp", "collided",
@@ -58,7 +67,7 @@ room)."""
 
 CandidateLists = namedtuple("CandidateLists", ("muscle", "mb_begin", "mb_end", "mb_idx", "room"))
 CandidateLists.__doc__ = """The spatial hash's candidate lists, replaced when they outgrow their
-room: ``muscle`` the muscle-muscle lists (:func:`~muscle_mss.core.spatial_hash.muscle_lists`),
+room: ``muscle`` the muscle-muscle lists (:func:`~muscle_mss.core.sphere_lists.muscle_lists`),
 and each muscle sphere's own list of bone spheres ``mb_idx[mb_begin[i]:mb_end[i]]`` in its
 ``room`` slots."""
 
@@ -103,7 +112,7 @@ def hash_state(spheres: Spheres, used: bool):
     """``(HashState, bone table, CandidateLists)`` of the spatial hash: the bone table is built here once
     (bones do not move during a solve); the candidate lists in the first iteration
     (muscle-muscle lists then refreshed sphere by sphere,
-    :func:`~muscle_mss.core.spatial_hash.muscle_contacts`). Empty when not ``used``."""
+    :func:`~muscle_mss.core.sphere_lists.muscle_contacts`). Empty when not ``used``."""
     ns = spheres.count
     skin = spatial_hash.skin_width(spheres, per_sphere=True)
     bone_object = spheres.bone + spheres.n_muscles
@@ -117,7 +126,7 @@ def hash_state(spheres: Spheres, used: bool):
                        np.zeros(len(spheres.bone_radius), dtype=np.bool_),
                        spatial_hash.muscle_cell(spheres, skin), skin, np.full((3, ns), np.inf),
                        np.zeros(ns, dtype=np.int64), np.zeros(ns, dtype=np.uint8))
-    lists = CandidateLists(spatial_hash.muscle_lists(spheres.radius if used else np.zeros(0)),
+    lists = CandidateLists(sphere_lists.muscle_lists(spheres.radius if used else np.zeros(0)),
                            empty, empty.copy(), np.zeros(ns * room, np.int64), room)
     return hashed, table, lists
 
@@ -229,7 +238,7 @@ def collide(contacts, options, lists):
     else:
         muscle = lists.muscle
         if options.muscle_muscle:
-            refreshed, muscle = spatial_hash.muscle_contacts(
+            refreshed, muscle = sphere_lists.muscle_contacts(
                 spheres.centres, spheres.radius, spheres.muscle, spheres.fixed, spheres.moves,
                 hashed.skin, hashed.muscle_cell, lists.muscle, spheres.disp, spheres.collided,
                 spheres.pair_count, spheres.pair_pen)

@@ -25,7 +25,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from .mss import Spheres, deeper, push_share, sphere_push
+from .collision_spheres import Spheres, deeper, push_share, sphere_push
 
 MAX_DEPTH = 8
 MIN_PRIMITIVES = 10

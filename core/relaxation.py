@@ -53,12 +53,12 @@ from numba import njit, prange
 
 from .bone_distance import BoneSolids
 from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_spheres,
-                       contact_options, final_passes, gather_sphere, hash_state, respond_sphere,
-                       solved_state, world_box)
+                       contact_options, final_passes, gather_sphere, hash_state, now,
+                       respond_sphere, solved_state, world_box)
 from .errors import MuscleMSSError
 from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
                     stability_problem)
-from .mss import mss_state, muscle_step, now
+from .mss import mss_state, muscle_step
 from .settings import (STRUCTURE_HASH, STRUCTURES, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
                        TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
 from .solid_contacts import respond_solids, solid_contacts_range, solid_state

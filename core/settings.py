@@ -110,10 +110,13 @@ class SolverSettings:
     """
 
     method: str = DEFAULT_METHOD
+    # when to stop
     termination: str = TERMINATION_ITERATIONS
     iterations: int = DEFAULT_ITERATIONS
     time_budget: float = DEFAULT_TIME_BUDGET
+    # the model's volume term
     bulk_modulus: float = DEFAULT_BULK_MODULUS
+    # contacts
     structure: str = STRUCTURE_HASH
     bvh_max_depth: int = DEFAULT_BVH_MAX_DEPTH
     bvh_min_primitives: int = DEFAULT_BVH_MIN_PRIMITIVES
@@ -121,6 +124,7 @@ class SolverSettings:
     muscle_bone: bool = True
     projection_passes: int = DEFAULT_PROJECTION_PASSES
     penetration_tolerance: float = DEFAULT_PENETRATION_TOLERANCE
+    # the methods' own parts
     relaxation: RelaxationSettings = field(default_factory=RelaxationSettings)
     quasi_static: QuasiStaticSettings = field(default_factory=QuasiStaticSettings)
 

@@ -10,7 +10,7 @@ reaches. A sphere lists the spheres of *other* objects within ``r_i + r_j + skin
 refreshes only those candidates are tested exactly, so the colliding pairs found are exactly
 those of a brute-force test as long as the lists are complete:
 
-* muscle-muscle (:func:`muscle_contacts`): each sphere refreshes its own list when it has
+* muscle-muscle (:func:`~muscle_mss.core.sphere_lists.muscle_contacts`): each sphere refreshes its own list when it has
   moved more than ``skin / 2`` from where its list was built (its reference position), and a
   pair is tested from the list refreshed last; spheres that jitter near tendon attachments pay
   for their own queries while the others keep their lists. The grid of reference positions is
@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .mss import Spheres, deeper, push_share, sphere_push
+from .collision_spheres import Spheres, deeper, push_share, sphere_push
 
 # Skin of the candidate lists as a fraction of the mean muscle sphere radius: longer lists
 # against more refreshes. Lists rebuilt all at once whenever any sphere moved (candidate_lists)
@@ -41,13 +41,8 @@ SKIN_FRACTION = 1.5
 PER_SPHERE_SKIN_FRACTION = 0.75
 # Radius quantiles that split the spheres of a grid into size levels (:func:`size_levels`).
 LEVEL_QUANTILES = (0.5, 0.9)
-# The muscle grid is rebuilt when a sphere lies this many cells outside its cell.
-DRIFT_FRACTION = 0.25
 # Slots per muscle sphere for its candidates at first; doubled when one needs more.
 INITIAL_ROOM = 64
-# mm added to the reach of the refreshed muscle lists, so that rounding cannot drop a pair
-# whose spheres each moved exactly half the skin
-ROUNDING_GUARD = 1e-9
 
 
 @njit(cache=True)
@@ -62,18 +57,18 @@ def grid_table(centres, radius, cell, objects):
     query skips cells holding only its own object's spheres. Returns ``(lower (3,), dims (3,)
     int64, cell, start (cells + 1,), items (n,), bits (cells,), packed, tops (1,))``; sphere
     ``items[e]`` is the ``e``-th in key order; ``tops`` the size levels
-    (:func:`size_levels`, :func:`_fill_grid`).
+    (:func:`size_levels`, :func:`fill_grid`).
     """
     n = centres.shape[1]
     tops = size_levels(radius)
     lower = np.zeros(3)
     dims = np.ones(3, dtype=np.int64)
-    start = np.zeros(_cell_capacity(n) * tops.shape[0] + 1, dtype=np.int64)
+    start = np.zeros(cell_capacity(n) * tops.shape[0] + 1, dtype=np.int64)
     items = np.empty(n, dtype=np.int64)
-    bits = np.zeros(_cell_capacity(n) * tops.shape[0], dtype=np.uint64)
+    bits = np.zeros(cell_capacity(n) * tops.shape[0], dtype=np.uint64)
     packed = np.empty((5, n))
     key = np.empty(n, dtype=np.int64)
-    cell = _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, bits,
+    cell = fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, bits,
                       packed, key)
     cells = dims[0] * dims[1] * dims[2]
     keys = cells * tops.shape[0]
@@ -82,7 +77,7 @@ def grid_table(centres, radius, cell, objects):
 
 @njit(cache=True)
 def size_levels(radius):
-    """Size levels of a grid (:func:`_fill_grid`): the radii at :data:`LEVEL_QUANTILES` and the
+    """Size levels of a grid (:func:`fill_grid`): the radii at :data:`LEVEL_QUANTILES` and the
     largest radius, ascending and distinct, mm ((1,) zero for no spheres). Muscle sphere radii
     vary tenfold (tendon ends to bellies): without levels every query would reach as far as
     the largest sphere."""
@@ -96,13 +91,13 @@ def size_levels(radius):
 
 
 @njit(cache=True, inline="always")
-def _cell_capacity(n):
+def cell_capacity(n):
     """Most cells a grid over ``n`` spheres gets (8 per sphere, and a few for tiny sets)."""
     return 8 * n + 64
 
 
 @njit(cache=True)
-def _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, bits, packed,
+def fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, bits, packed,
                key):
     """:func:`grid_table` into given arrays, with size levels: no allocation, so a solve can
     rebuild its grid every iteration (serial: a counting sort of a few 10k spheres takes less
@@ -111,8 +106,8 @@ def _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, 
     ``tops`` (L,) ascending: a sphere is in the first level ``l`` with ``radius <= tops[l]``
     (the last level takes the rest; ``tops[-1]`` must be the largest radius). Its key is
     ``cell * L + l``: a cell's spheres are sorted by level, so a query looks for the spheres of
-    each level only as far as they can reach (:func:`_scan`). ``start`` and ``bits`` are per
-    key (at least ``L *`` :func:`_cell_capacity` ``+ 1`` / ``+ 0`` entries); ``key`` (n,)
+    each level only as far as they can reach (:func:`scan_grid`). ``start`` and ``bits`` are per
+    key (at least ``L *`` :func:`cell_capacity` ``+ 1`` / ``+ 0`` entries); ``key`` (n,)
     receives each sphere's key. Non-finite coordinates go to the border cells (they collide
     with nothing). Returns the cell size used, mm."""
     n = centres.shape[1]
@@ -134,7 +129,7 @@ def _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, 
         cells = 1.0
         for axis in range(3):
             cells *= min((upper[axis] - lower[axis]) / cell, 1e12) + 1.0
-        if cells <= _cell_capacity(n):
+        if cells <= cell_capacity(n):
             break
         cell *= 1.26
     for axis in range(3):
@@ -172,7 +167,7 @@ def _fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, 
 
 
 @njit(cache=True)
-def _move_in_grid(reference, queue, stale, key, start, items, packed, lower, dims, cell,
+def move_in_grid(reference, queue, stale, key, start, items, packed, lower, dims, cell,
                   levels, drift):
     """Give the spheres ``queue[:stale]`` their new reference positions in the grid without
     rebuilding it: they stay in their cells, and ``drift[0]`` keeps the farthest any sphere now
@@ -224,13 +219,21 @@ def _object_bit(obj):
     return np.uint64(1) << np.uint64(min(obj, 63))
 
 
+@njit(cache=True, inline="always")
+def owns_pair(i, j, stamp):
+    """Whether the pair (i, j) of muscle spheres is tested from ``i``'s list: the list refreshed
+    last (``stamp``: refresh number of each list; ties, lists refreshed together: the lower
+    index). That list was built from the other sphere's current reference position."""
+    return stamp[i] > stamp[j] or (stamp[i] == stamp[j] and i < j)
+
+
 @njit(cache=True)
-def _scan(i, query, q_radius, q_object, table, skin, pad, out, first, room, stamp, shared):
+def scan_grid(i, query, q_radius, q_object, table, skin, pad, out, first, room, stamp, shared):
     """Targets of another object within ``r_i + r_j + skin`` of query sphere ``i``, written in
     increasing index order to ``out[first:first + room]``; returns how many there are (more
     than ``room`` means they did not fit). ``table`` as :func:`grid_table`'s (size levels as
-    :func:`_fill_grid`); ``pad`` mm: how far a target may lie outside its cell. With
-    ``shared`` (queries and targets the same spheres, lists owned as :func:`_owns` says) only
+    :func:`fill_grid`); ``pad`` mm: how far a target may lie outside its cell. With
+    ``shared`` (queries and targets the same spheres, lists owned as :func:`owns_pair` says) only
     the targets ``i`` owns are listed, in cell order."""
     lower, dims, cell, start, items, bits, packed, tops = table
     levels = tops.shape[0]
@@ -258,7 +261,7 @@ def _scan(i, query, q_radius, q_object, table, skin, pad, out, first, room, stam
                         if d2 < limit * limit:
                             j = items[e]
                             if shared:
-                                if not _owns(i, j, stamp):
+                                if not owns_pair(i, j, stamp):
                                     continue
                                 if found < room:
                                     out[first + found] = j
@@ -284,13 +287,13 @@ def candidate_lists(query, q_radius, q_object, table, skin):
     counts = np.zeros(nq + 1, dtype=np.int64)
     none = np.empty(0, dtype=np.int64)
     for i in prange(nq):
-        counts[i + 1] = _scan(i, query, q_radius, q_object, table, skin, 0.0, none, 0, 0, none,
+        counts[i + 1] = scan_grid(i, query, q_radius, q_object, table, skin, 0.0, none, 0, 0, none,
                               False)
     for i in range(nq):
         counts[i + 1] += counts[i]
     idx = np.empty(counts[nq], dtype=np.int64)
     for i in prange(nq):
-        _scan(i, query, q_radius, q_object, table, skin, 0.0, idx, counts[i],
+        scan_grid(i, query, q_radius, q_object, table, skin, 0.0, idx, counts[i],
               counts[i + 1] - counts[i], counts, False)
     return counts[:-1].copy(), counts[1:].copy(), idx
 
@@ -318,7 +321,7 @@ def _own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, beg
         for axis in range(3):
             d2 += (query[axis, i] - built[axis, i]) ** 2
         if d2 > 0.25 * skin * skin:
-            found = _scan(i, query, q_radius, q_object, table, skin, 0.0, idx, i * room, room,
+            found = scan_grid(i, query, q_radius, q_object, table, skin, 0.0, idx, i * room, room,
                           begin, False)
             for axis in range(3):
                 built[axis, i] = query[axis, i]
@@ -330,7 +333,7 @@ def _own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, beg
             pair_count[i] = 0
             pair_pen[i] = 0.0
         else:
-            _contact(i, query, q_radius, fixed, begin[i], end[i], idx, t_centres, t_radius,
+            sphere_contact(i, query, q_radius, fixed, begin[i], end[i], idx, t_centres, t_radius,
                      t_object, t_moves, False, disp, collided, pair_count, pair_pen)
     return longest.max() if query.shape[1] else 0
 
@@ -365,12 +368,12 @@ def list_contacts(centres, radius, fixed, begin, end, idx, t_centres, t_radius, 
     particle.
     """
     for i in prange(centres.shape[1]):
-        _contact(i, centres, radius, fixed, begin[i], end[i], idx, t_centres, t_radius,
+        sphere_contact(i, centres, radius, fixed, begin[i], end[i], idx, t_centres, t_radius,
                  t_object, t_moves, same_set, disp, collided, pair_count, pair_pen)
 
 
 @njit(cache=True, inline="always")
-def _contact(i, centres, radius, fixed, first, last, idx, t_centres, t_radius, t_object,
+def sphere_contact(i, centres, radius, fixed, first, last, idx, t_centres, t_radius, t_object,
              t_moves, same_set, disp, collided, pair_count, pair_pen):
     """:func:`list_contacts` for sphere ``i`` and its candidates ``idx[first:last]``."""
     count = 0
@@ -424,208 +427,6 @@ def list_pairs(centres, radius, begin, end, idx, t_centres, t_radius, same_set):
                 hits[n, 1] = j
                 n += 1
     return hits[:n].copy()
-
-
-@njit(cache=True, inline="always")
-def _owns(i, j, stamp):
-    """Whether the pair (i, j) of muscle spheres is tested from ``i``'s list: the list refreshed
-    last (``stamp``: refresh number of each list; ties, lists refreshed together: the lower
-    index). That list was built from the other sphere's current reference position."""
-    return stamp[i] > stamp[j] or (stamp[i] == stamp[j] and i < j)
-
-
-def muscle_lists(radius, room: int = INITIAL_ROOM) -> tuple:
-    """The state of :func:`muscle_contacts` for the muscle spheres of radii ``radius`` (m,) mm,
-    every list stale.
-
-    ``(reference (3, m) mm, stamp (m,), clock (1,), queue (m,), count (m,), slot (m + 1,),
-    idx int32, hit int32, hits (m,), grid_cell (1,), drift (1,), lower (3,), dims (3,), start,
-    items (m,), bits, packed (5, m), tops (L,), key (m,), begin (m,), end (m,), partner)``:
-    sphere ``i``'s list is ``idx[slot[i]:slot[i] + count[i]]`` (room up to ``slot[i + 1]``),
-    built when it stood at ``reference[:, i]`` (refresh number ``stamp[i]``, the last being
-    ``clock[0]``); the ``hits[i]`` colliding pairs it owns are listed at the same place in
-    ``hit``; the grid of the reference positions as :func:`_fill_grid` makes it (cell
-    ``grid_cell[0]`` mm, size levels ``tops``), its spheres up to ``drift[0]`` mm outside
-    their cells; the colliding partners of sphere ``i`` are ``partner[begin[i]:end[i]]``.
-    """
-    radius = np.asarray(radius, dtype=np.float64)
-    count = len(radius)
-    tops = size_levels(radius)
-    keys = int(_cell_capacity(count)) * len(tops)
-    return (np.full((3, count), np.inf), np.zeros(count, np.int64), np.zeros(1, np.int64),
-            np.zeros(count, np.int64), np.zeros(count, np.int64),
-            np.arange(count + 1, dtype=np.int64) * room, np.zeros(count * room, np.int32),
-            np.zeros(count * room, np.int32), np.zeros(count, np.int64), np.zeros(1),
-            np.full(1, np.inf), np.zeros(3), np.ones(3, np.int64),
-            np.zeros(keys + 1, np.int64), np.zeros(count, np.int64), np.zeros(keys, np.uint64),
-            np.zeros((5, count)), tops, np.zeros(count, np.int64), np.zeros(count, np.int64),
-            np.zeros(count, np.int64), np.zeros(count, np.int64))
-
-
-@njit(cache=True)
-def _stale_spheres(centres, reference, limit, stamp, clock, queue):
-    """Spheres farther than ``limit`` mm from their reference position, into ``queue``; they
-    get the current position as reference and a new refresh number. Returns how many."""
-    stale = 0
-    for i in range(centres.shape[1]):
-        d2 = 0.0
-        for axis in range(3):
-            d2 += (centres[axis, i] - reference[axis, i]) ** 2
-        if d2 > limit * limit:
-            queue[stale] = i
-            stale += 1
-    if stale:
-        clock[0] += 1
-    for q in range(stale):
-        i = queue[q]
-        for axis in range(3):
-            reference[axis, i] = centres[axis, i]
-        stamp[i] = clock[0]
-    return stale
-
-
-@njit(cache=True, parallel=True)
-def _refresh_lists(reference, radius, muscle, table, skin, pad, stamp, queue, stale, count,
-                   slot, idx):
-    """New lists for the spheres ``queue[:stale]`` from the grid ``table`` of the reference
-    positions; returns how many did not fit their room (they come first in ``queue`` then)."""
-    for q in prange(stale):
-        i = queue[q]
-        count[i] = _scan(i, reference, radius, muscle, table, skin + ROUNDING_GUARD, pad, idx,
-                         slot[i], slot[i + 1] - slot[i], stamp, True)
-    over = 0
-    for q in range(stale):
-        i = queue[q]
-        if count[i] > slot[i + 1] - slot[i]:
-            queue[over] = i
-            over += 1
-    return over
-
-
-@njit(cache=True, parallel=True)
-def _relaid(count, slot, idx):
-    """``(slot, idx, hit)`` with room for twice each list (and a few more), the lists that fit
-    their old room copied over (the others are rebuilt next)."""
-    n = count.shape[0]
-    grown = np.empty(n + 1, dtype=np.int64)
-    grown[0] = 0
-    for i in range(n):
-        grown[i + 1] = grown[i] + 2 * count[i] + 4
-    pool = np.zeros(grown[n], dtype=idx.dtype)
-    for i in prange(n):
-        if count[i] <= slot[i + 1] - slot[i]:
-            for k in range(count[i]):
-                pool[grown[i] + k] = idx[slot[i] + k]
-    return grown, pool, np.zeros(grown[n], dtype=idx.dtype)
-
-
-@njit(cache=True, parallel=True)
-def _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end, partner, disp,
-             collided, pair_count, pair_pen):
-    """:func:`list_contacts` on the colliding pairs ``hit`` found by their owners: each sphere
-    gets its colliding partners ``partner[begin[i]:end[i]]`` in increasing index order and the
-    same response. The partner lists are gathered serially (a few thousand pairs), the
-    responses in parallel. Returns ``partner`` (grown when too short)."""
-    n = hits.shape[0]
-    total = 0
-    for i in range(n):
-        end[i] = hits[i]
-    for i in range(n):
-        for e in range(slot[i], slot[i] + hits[i]):
-            end[hit[e]] += 1
-        total += 2 * hits[i]
-    if total > partner.shape[0]:
-        partner = np.empty(2 * total, dtype=np.int64)
-    total = 0
-    for i in range(n):
-        begin[i] = total
-        total += end[i]
-        end[i] = begin[i]
-    for i in range(n):
-        for e in range(slot[i], slot[i] + hits[i]):
-            j = hit[e]
-            partner[end[i]] = j
-            end[i] += 1
-            partner[end[j]] = i
-            end[j] += 1
-    for i in prange(n):
-        pair_count[i] = 0
-        pair_pen[i] = 0.0
-        if end[i] > begin[i]:
-            for f in range(begin[i] + 1, end[i]):
-                j = partner[f]
-                g = f
-                while g > begin[i] and partner[g - 1] > j:
-                    partner[g] = partner[g - 1]
-                    g -= 1
-                partner[g] = j
-            _contact(i, centres, radius, fixed, begin[i], end[i], partner, centres, radius,
-                     muscle, moves, True, disp, collided, pair_count, pair_pen)
-    return partner
-
-
-@njit(cache=True, parallel=True)
-def muscle_contacts(centres, radius, muscle, fixed, moves, skin, cell, lists, disp, collided,
-                    pair_count, pair_pen):
-    """Muscle-muscle collisions of one iteration with lists refreshed sphere by sphere.
-
-    A sphere's list holds the spheres of other muscles within ``r_i + r_j + skin`` of it, both
-    taken at their *reference* positions (where each stood when its own list was last
-    refreshed); a pair is tested from the list of the sphere refreshed last (:func:`_owns`),
-    which always holds it when the two are that close. A sphere refreshes its list when it has
-    moved more than ``skin / 2`` from its reference position; the others keep theirs. So any
-    two spheres are at most ``skin`` closer than at their reference positions, and a pair
-    missing from its owner's list cannot collide: the pairs found are exactly those of a brute
-    force test, while only the spheres that moved (near tendon attachments, say) pay for a
-    grid query. The grid of reference positions is rebuilt in place (:func:`_fill_grid`)
-    whenever a list is refreshed.
-
-    ``centres`` (3, m) mm, ``radius`` (m,) mm, ``muscle`` (m,), ``fixed`` (m,) bool, ``moves``
-    (m,) bool (free), ``skin`` mm, ``cell`` grid cell mm (:func:`muscle_cell`), ``lists`` from
-    :func:`muscle_lists`; ``disp``, ``collided``, ``pair_count``, ``pair_pen`` as
-    :func:`list_contacts` fills them (the same response, bit for bit). Returns ``(spheres
-    refreshed, lists)``: keep the returned lists (lists that outgrew their room got more).
-    """
-    (reference, stamp, clock, queue, count, slot, idx, hit, hits, grid_cell, drift, lower, dims,
-     start, items, bits, packed, tops, key, begin, end, partner) = lists
-    n = centres.shape[1]
-    if n == 0:
-        return 0, lists
-    stale = _stale_spheres(centres, reference, 0.5 * skin, stamp, clock, queue)
-    if stale:
-        if not drift[0] <= DRIFT_FRACTION * grid_cell[0]:
-            grid_cell[0] = _fill_grid(reference, radius, muscle, tops, cell, lower, dims, start,
-                                      items, bits, packed, key)
-            drift[0] = 0.0
-        else:
-            _move_in_grid(reference, queue, stale, key, start, items, packed, lower, dims,
-                          grid_cell[0], tops.shape[0], drift)
-        table = (lower, dims, grid_cell[0], start, items, bits, packed, tops)
-        over = _refresh_lists(reference, radius, muscle, table, skin, drift[0], stamp, queue,
-                              stale, count, slot, idx)
-        if over:
-            slot, idx, hit = _relaid(count, slot, idx)
-            _refresh_lists(reference, radius, muscle, table, skin, drift[0], stamp, queue,
-                           over, count, slot, idx)
-    # the exact tests, each pair from its owner's list; the colliding partners go to
-    # hit[slot[i]:slot[i] + hits[i]]
-    for i in prange(n):
-        found = slot[i]
-        for e in range(slot[i], slot[i] + count[i]):
-            j = idx[e]
-            if _owns(i, j, stamp):
-                pen, nx, ny, nz = sphere_push(centres[0, i], centres[1, i], centres[2, i],
-                                              radius[i], centres[0, j], centres[1, j],
-                                              centres[2, j], radius[j], True)
-                if pen > 0.0:
-                    hit[found] = j
-                    found += 1
-        hits[i] = found - slot[i]
-    partner = _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end,
-                       partner, disp, collided, pair_count, pair_pen)
-    return stale, (reference, stamp, clock, queue, count, slot, idx, hit, hits, grid_cell,
-                   drift, lower, dims, start, items, bits, packed, tops, key, begin, end,
-                   partner)
 
 
 def skin_width(spheres: Spheres, per_sphere: bool = False) -> float:

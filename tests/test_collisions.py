@@ -3,7 +3,8 @@ core/bone_spheres.py and the response rule of core/mss.py)."""
 import numpy as np
 import pytest
 
-from muscle_mss.core import contacts, mss, octree_bvh, spatial_hash, solver
+from muscle_mss.core import (collision_spheres, contacts, octree_bvh, spatial_hash, solver,
+                             sphere_lists)
 from muscle_mss.core.model import MSSModel
 from muscle_mss.core.bone_spheres import SPHERES_PER_AREA, bone_spheres, surface_area
 from muscle_mss.core.errors import MuscleMSSError
@@ -220,7 +221,7 @@ def test_final_passes_give_up_on_a_sphere_wedged_between_two_bones():
 def random_cloud(seed, n=1500, muscles=5, bones=3):
     rng = np.random.default_rng(seed)
     muscle = np.sort(rng.integers(0, muscles, n))
-    spheres = mss.make_spheres(rng.random(n) * 2 + 0.1, muscle, rng.random(n) < 0.1,
+    spheres = collision_spheres.make_spheres(rng.random(n) * 2 + 0.1, muscle, rng.random(n) < 0.1,
                                rng.random(n) < 0.85, rng.random((500, 3)) * 40,
                                rng.random(500) + 0.5, np.sort(rng.integers(0, bones, 500)))
     return rng.random((n, 3))[spheres.particle] * 40, spheres
@@ -255,7 +256,7 @@ def test_hash_and_bvh_find_the_same_pairs_on_packed_lattices():
     muscle = np.repeat([0, 1, 2], len(block))
     sheet = np.stack(np.meshgrid(np.arange(-2, 22, 0.7), np.arange(-2, 22, 0.7), [-0.8],
                                  indexing="ij"), -1).reshape(-1, 3)
-    spheres = mss.make_spheres(np.full(len(centres), 0.5), muscle, np.zeros(len(centres), bool),
+    spheres = collision_spheres.make_spheres(np.full(len(centres), 0.5), muscle, np.zeros(len(centres), bool),
                                np.ones(len(centres), bool), sheet, np.full(len(sheet), 0.6),
                                np.zeros(len(sheet), int))
     hashed = spatial_hash.colliding_pairs(centres, spheres)
@@ -345,7 +346,7 @@ def response_of_lists(x, spheres, begin, end, idx):
 def incremental_step(x, spheres, skin, lists):
     n = spheres.count
     out = (np.zeros((3, n)), np.zeros(n, np.uint8), np.zeros(n, np.int64), np.zeros(n))
-    refreshed, lists = spatial_hash.muscle_contacts(
+    refreshed, lists = sphere_lists.muscle_contacts(
         x, spheres.radius, spheres.muscle, spheres.fixed, ~spheres.fixed, skin,
         spatial_hash.muscle_cell(spheres, skin), lists, *out)
     return refreshed, lists, out
@@ -360,7 +361,7 @@ def test_lists_refreshed_sphere_by_sphere_find_the_brute_force_pairs_while_spher
     skin = 0.8
     rng = np.random.default_rng(4)
     x = np.ascontiguousarray(centres.T)
-    lists = spatial_hash.muscle_lists(spheres.radius, room)
+    lists = sphere_lists.muscle_lists(spheres.radius, room)
     refreshed_counts = []
     for step in range(8):
         refreshed, lists, got = incremental_step(x, spheres, skin, lists)
@@ -392,9 +393,9 @@ def test_a_pair_approached_by_exactly_half_the_skin_each_is_found():
     # overlapping by 2e-16 mm; the list reach must not lose that pair
     skin = 1.0
     a = 0.4097352393619469
-    spheres = mss.make_spheres([1.0, 1.0], [0, 1], [False, False], [True, True])
+    spheres = collision_spheres.make_spheres([1.0, 1.0], [0, 1], [False, False], [True, True])
     x = np.array([[a, a + 3.0], [0.0, 0.0], [0.0, 0.0]])
-    lists = spatial_hash.muscle_lists(spheres.radius)
+    lists = sphere_lists.muscle_lists(spheres.radius)
     _, lists, out = incremental_step(x, spheres, skin, lists)
     assert out[2].sum() == 0
     x = np.array([[a + 0.5, a + 3.0 - 0.5], [0.0, 0.0], [0.0, 0.0]])
@@ -404,9 +405,9 @@ def test_a_pair_approached_by_exactly_half_the_skin_each_is_found():
 
 def test_no_muscle_spheres_and_one_lone_sphere():
     for radius in ([], [1.0]):
-        spheres = mss.make_spheres(radius, np.zeros(len(radius), int),
+        spheres = collision_spheres.make_spheres(radius, np.zeros(len(radius), int),
                                    np.zeros(len(radius), bool), np.ones(len(radius), bool))
-        lists = spatial_hash.muscle_lists(spheres.radius)
+        lists = sphere_lists.muscle_lists(spheres.radius)
         refreshed, lists, out = incremental_step(np.zeros((3, len(radius))), spheres, 0.5,
                                                  lists)
         assert refreshed == len(radius) and out[2].sum() == 0

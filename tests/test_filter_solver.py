@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from muscle_mss.core import mss, octree_bvh, spatial_hash
+from muscle_mss.core import collision_spheres, octree_bvh, spatial_hash
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
@@ -79,7 +79,7 @@ def spheres_of(multiblock, bones, spacing):
     for k, (name, bone) in enumerate(V.blocks(bones)):
         c, r = bone_spheres(V.points_of(bone), V.triangles_of(bone), spacing)
         centres.append(c), radii.append(r), ids.append(np.full(len(c), k))
-    spheres = mss.make_spheres(cat(A.RADIUS), muscle, cat(A.FIXED) > 0, cat(A.BOUNDARY) > 0,
+    spheres = collision_spheres.make_spheres(cat(A.RADIUS), muscle, cat(A.FIXED) > 0, cat(A.BOUNDARY) > 0,
                                np.concatenate(centres), np.concatenate(radii),
                                np.concatenate(ids))
     points = np.concatenate([V.points_of(b) for _, b in blocks])
