@@ -87,8 +87,12 @@ def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
     ``settings`` maps property names to values, e.g. ``{"ParticlesPerFibre": 40,
     "Layout": "k-NN"}``; each is applied to every filter that has that property.
     """
-    from . import (FibreResampler, MSSCollisionSolver, MVCSurfaceDeformer, RigidPoseTransform,
-                   SpringBuilder, VolumeErrorProbe)
+    from .collision_solver import MSSCollisionSolver
+    from .fibre_resampler import FibreResampler
+    from .mvc_surface_deformer import MVCSurfaceDeformer
+    from .rigid_pose_transform import RigidPoseTransform
+    from .spring_builder import SpringBuilder
+    from .volume_error_probe import VolumeErrorProbe
 
     resampler, springs, pose = FibreResampler(), SpringBuilder(), RigidPoseTransform()
     solver, deformer, probe = MSSCollisionSolver(), MVCSurfaceDeformer(), VolumeErrorProbe()
