@@ -60,6 +60,8 @@ def attachment_report(scene: Scene) -> str:
 REGION_THIGH, REGION_ARM = "thigh", "arm"
 DEMO_REGIONS = (REGION_THIGH, REGION_ARM)
 """The demo scenes: the thigh's walk (the default) and the elbow's flexion."""
+DEMO_SIZES = ("full", "small")
+"""The demo scene's sizes (``demo_scene(size)``): the full scene (the default) and a quick one."""
 
 
 def demo_region_scene(region: str, size: str) -> Scene:
@@ -254,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo-scene", help="write a demo scene (thigh or arm) and preview.png")
     p.add_argument("out", help="folder to write")
-    p.add_argument("--size", choices=("full", "small"), default="full",
+    p.add_argument("--size", choices=DEMO_SIZES, default=DEMO_SIZES[0],
                    help="full: 64 fibres per muscle (thigh 13 muscles, arm 7); small: a quick "
                         "variant for tests")
     _add_region_option(p)
@@ -262,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="write the demo scene and run its whole walk")
     p.add_argument("out", nargs="?", default="demo_out", help="output folder (default demo_out)")
-    p.add_argument("--size", choices=("full", "small"), default="full")
+    p.add_argument("--size", choices=DEMO_SIZES, default=DEMO_SIZES[0])
     _add_region_option(p)
     add_run_options(p)
     p.set_defaults(func=cmd_demo)

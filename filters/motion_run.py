@@ -33,6 +33,7 @@ from .scene_io import scene_readers
 from .spring_builder import SpringBuilder
 from .volume_error_probe import IN_BONE_COLUMNS, VolumeErrorProbe
 
+
 @dataclass
 class Pipeline:
     """The six filters wired to a scene's readers, as plain VTK algorithms."""
