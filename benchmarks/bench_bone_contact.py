@@ -38,14 +38,15 @@ from muscle_mss.core.model import prepare
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.solid_contacts import solid_points
 from muscle_mss.core.settings import SolverSettings
-from muscle_mss.filters.collision_solver import solid_bones
+from muscle_mss.filters.collision_solver import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES,
+                                                 solid_bones)
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
 from muscle_mss.filters.scene_io import write_scene
 
 from bench_solver import (BONE_COUNTS, ITERATIONS, REPEATS, machine, posed_workload,
                           write_result)
 
-CONTACTS = ("sphere set", "solid")
+CONTACTS = (BONE_CONTACT_SPHERES, BONE_CONTACT_SOLID)
 METHODS = ("paper relaxation", "quasi-static")
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from muscle_mss.core import penetration as P
 from muscle_mss.core import relaxation
-from muscle_mss.filters import bone_sets, motion_run
+from muscle_mss.filters import bone_sets, motion_run, run_output
 from muscle_mss.filters.cli import DEMO_REGIONS, demo_region_scene
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.mvc_surface_deformer import weight_counts
@@ -77,7 +77,7 @@ def time_point_parts(pipeline, index, out, clock) -> dict:
     result = motion_run.solve_time_point(pipeline, index)  # stages up to date: probe + rows
     seconds["statistics"] = time.perf_counter() - start
     start = time.perf_counter()
-    motion_run.write_time_point(result, out)
+    run_output.write_time_point(result, out)
     seconds["writing"] = time.perf_counter() - start
     return seconds, result
 
@@ -116,10 +116,12 @@ def replaced_parts(pipeline, index, result, out) -> list:
     rows.append(("penetration statistics (Python reference / Numba grid)", old,
                  time.perf_counter() - start))
     start = time.perf_counter()
-    motion_run.write_time_point(result, os.path.join(out, "zlib"), compressor="zlib")
+    run_output.write_time_point(result, os.path.join(out, run_output.COMPRESSOR_ZLIB),
+                                compressor=run_output.COMPRESSOR_ZLIB)
     old = time.perf_counter() - start
     start = time.perf_counter()
-    motion_run.write_time_point(result, os.path.join(out, "lz4"), compressor="lz4")
+    run_output.write_time_point(result, os.path.join(out, run_output.COMPRESSOR_LZ4),
+                                compressor=run_output.COMPRESSOR_LZ4)
     rows.append(("writing the three series (ZLib / LZ4)", old, time.perf_counter() - start))
     return rows
 

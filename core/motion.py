@@ -10,7 +10,7 @@ import numpy as np
 from .errors import first_problem
 from .scene import MOTION_COLUMNS, MOTION_FILE, Motion
 
-RIGID_TOLERANCE = 1e-5
+ROTATION_TOLERANCE = 1e-5
 """Largest allowed deviation of ``R^T R`` from the identity and of ``det R`` from 1."""
 
 
@@ -19,15 +19,15 @@ def rigid_problem(matrix) -> str | None:
     m = np.asarray(matrix, dtype=np.float64)
     r = m[:3, :3]
     deviation = float(np.abs(r.T @ r - np.eye(3)).max())
-    if deviation > RIGID_TOLERANCE:
+    if deviation > ROTATION_TOLERANCE:
         return (f"is not rigid: its 3x3 part is scaled or sheared (|R^T R - I| = {deviation:.3g}); "
                 "each transform must be a rotation plus a translation")
     det = float(np.linalg.det(r))
     if det < 0.0:
         return f"is not rigid: its 3x3 part is a reflection (det = {det:.3g}); it must be a rotation"
-    if abs(det - 1.0) > RIGID_TOLERANCE:
+    if abs(det - 1.0) > ROTATION_TOLERANCE:
         return (f"is not rigid: its 3x3 part scales volumes by det = {det:.8g} (|R^T R - I| = "
-                f"{deviation:.3g}); a rotation has det 1 within {RIGID_TOLERANCE:g}")
+                f"{deviation:.3g}); a rotation has det 1 within {ROTATION_TOLERANCE:g}")
     return None
 
 

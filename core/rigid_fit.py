@@ -14,7 +14,7 @@ from numba import njit
 
 from .errors import MuscleMSSError, checked_points
 
-RIGID_MOTION_TOLERANCE = 1e-5
+POSED_BONE_RESIDUAL = 1e-5
 """A posed bone is a rigid motion of its rest bone when the fit leaves no point farther than
 this fraction of the bone's size (its bounding box's longest side, at least 1 mm)."""
 
@@ -79,14 +79,14 @@ def fitted_rigid_transform(rest, posed, where="bone") -> np.ndarray:
     """The rigid 3x4 transform ``M`` with ``posed = rest @ M[:, :3].T + M[:, 3]``, for a bone
     given at rest and posed: (n, 3) mm each, the same vertices in the same order. Raises
     :class:`MuscleMSSError` naming ``where`` when ``posed`` is not a rigid motion of ``rest``
-    (a point off by more than :data:`RIGID_MOTION_TOLERANCE` of the bone's size)."""
+    (a point off by more than :data:`POSED_BONE_RESIDUAL` of the bone's size)."""
     rest = checked_points(rest, f"{where} (rest)")
     posed = checked_points(posed, f"{where} (posed)")
     if rest.shape != posed.shape or len(rest) < 3:
         raise MuscleMSSError(f"{where}: the posed bone has {len(posed)} points and the rest bone "
                              f"{len(rest)}; connect the bones the pose was made from")
     rotation, translation, off, size = rigid_fit(rest, posed)
-    if off > RIGID_MOTION_TOLERANCE * max(size, 1.0):
+    if off > POSED_BONE_RESIDUAL * max(size, 1.0):
         raise MuscleMSSError(f"{where}: the posed bone is not a rigid motion of the rest bone "
                              f"(off by {off:.3g} mm); connect the rest bones (bones.vtm) and the "
                              "Rigid Pose Transform's PosedBones made from them")

@@ -75,7 +75,7 @@ DEFAULT_HISTORY = 8             # L-BFGS pairs kept
 DEFAULT_CONTACT_WEIGHT = 0.3
 
 
-@dataclass
+@dataclass(slots=True)
 class RelaxationSettings:
     """What only the paper relaxation reads: its termination threshold (mm per iteration), the
     time step (s) of its semi-implicit Euler integration and the viscous drag (1/s)."""
@@ -85,7 +85,7 @@ class RelaxationSettings:
     drag: float = DEFAULT_DRAG
 
 
-@dataclass
+@dataclass(slots=True)
 class QuasiStaticSettings:
     """What only the quasi-static method reads: its tolerance (mm, the largest particle move of
     a quasi-Newton step), the contact stiffness (a multiple of the stiffest particle's spring
@@ -96,9 +96,11 @@ class QuasiStaticSettings:
     history: int = DEFAULT_HISTORY
 
 
-@dataclass
+@dataclass(slots=True)
 class SolverSettings:
-    """The MSS Collision Solver's parameters (the filter's properties).
+    """The MSS Collision Solver's parameters (the filter's properties). Slotted, as its parts:
+    setting a field that does not exist (``settings.tolerance`` for
+    ``settings.quasi_static.tolerance``) is an AttributeError, not a silent no-op.
 
     ``method`` one of :data:`METHODS`; ``termination`` one of :data:`TERMINATIONS` (the
     quasi-static method honours only ``time budget``, besides its tolerance); ``iterations``

@@ -3,12 +3,15 @@
 ``from muscle_mss.filters import FibreResampler, SpringBuilder, RigidPoseTransform,
 MSSCollisionSolver, MVCSurfaceDeformer, VolumeErrorProbe, read_scene``
 
-Names are imported on first use, so importing one filter does not import (and compile) them all.
+Names are imported on first use, so importing one filter does not import them all. Taking a
+filter class from here is a script's entry point: when this Python's kernels are not compiled
+yet, it says so and compiles them first (:func:`~muscle_mss.filters.warm_up.ensure_compiled`);
+the filters' own modules, the CLI, the batch and the ParaView proxies import the classes from
+their modules.
 """
 import importlib
 
-# Public name -> module of this package defining it.
-_EXPORTS = {
+EXPORTS = {
     "FibreResampler": "fibre_resampler",
     "SpringBuilder": "spring_builder",
     "RigidPoseTransform": "rigid_pose_transform",
@@ -18,19 +21,23 @@ _EXPORTS = {
     "read_scene": "scene_io",
     "write_scene": "scene_io",
 }
+"""Public name -> module of this package defining it."""
 
 FILTER_NAMES = ("FibreResampler", "SpringBuilder", "RigidPoseTransform",
                 "MSSCollisionSolver", "MVCSurfaceDeformer", "VolumeErrorProbe")
 """The filters in pipeline order; the ParaView plugin exposes exactly these."""
 
-__all__ = list(_EXPORTS) + ["MuscleMSSError"]
+__all__ = list(EXPORTS) + ["MuscleMSSError"]
 
 
 def __getattr__(name):
     if name == "MuscleMSSError":
         from muscle_mss.core.errors import MuscleMSSError
         return MuscleMSSError
-    if name in _EXPORTS:
-        module = importlib.import_module(f".{_EXPORTS[name]}", __name__)
+    if name in EXPORTS:
+        module = importlib.import_module(f".{EXPORTS[name]}", __name__)
+        if name in FILTER_NAMES:
+            from .warm_up import ensure_compiled, output_window_notice
+            ensure_compiled(output_window_notice)
         return getattr(module, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -62,4 +62,20 @@ PROJECTION_PASSES = "projection_passes"  # float64, collision passes after the l
 REMAINING_PENETRATION = "remaining_penetration"  # float64, mm, deepest overlap they left
 CONVERGED = "converged"              # float64 1/0, the solve reached its tolerance (solver)
 METHOD = "method"                    # string, the solver method that produced the table
+
+# Columns of the MSS Collision Solver's convergence table (one row per iteration).
+ITERATION = "iteration"              # int, 1 = the first iteration
+MEAN_DISPLACEMENT = "mean_displacement_"  # prefix of one column per muscle: + the muscle name, mm
+COLLIDING_PAIRS = "colliding_pairs"  # int, sphere pairs in contact
+MAX_PENETRATION = "max_penetration"  # float64, mm, the deepest overlap
+SECONDS = "seconds"                  # float64, s since the solve began (summary.csv: of the time
+#                                      point)
 RESIDUAL = "residual"                # column of the solver's table: mm, largest move of a step
+
+# Columns of summary.csv (besides MUSCLE, the probe's volumes and in-bone counts, the solver's
+# FREE_IN_BONE_FIELDS, CONVERGED and SECONDS above).
+TIME = "time"                        # float64, s
+MEAN_FIBRE_STRAIN = "mean_fibre_strain"
+MAX_FIBRE_STRAIN = "max_fibre_strain"
+SPHERE_OVERLAP_MM = "sphere_overlap_mm"  # mm, deepest overlap of the muscle's spheres
+ITERATIONS = "iterations"            # int, iterations of the time point's solve

@@ -31,7 +31,6 @@ from vtkmodules.vtkCommonExecutionModel import (vtkDemandDrivenPipeline,
 from muscle_mss.core.errors import Interrupted, MuscleMSSError
 
 from .properties import Property
-from .warm_up import ensure_compiled
 
 SDDP = vtkStreamingDemandDrivenPipeline
 # the folder holding core/ and filters/: frames of muscle-mss in a traceback start with it
@@ -126,7 +125,6 @@ class MuscleFilter(VTKPythonAlgorithmBase):
                 if data is None and not port.optional:
                     raise MuscleMSSError(f"input '{port.name}' is not connected")
                 inputs.append(data)
-            ensure_compiled(_compile_notice)
             self.execute(inputs, outputs)
         except MuscleMSSError as err:
             self._fail(err, outputs)
@@ -202,11 +200,6 @@ class MuscleFilter(VTKPythonAlgorithmBase):
         if info.Has(SDDP.UPDATE_TIME_STEP()):
             return info.Get(SDDP.UPDATE_TIME_STEP())
         return default
-
-
-def _compile_notice(text: str) -> None:
-    """Show the kernel compile notice among ParaView's output messages (stderr elsewhere)."""
-    vtkOutputWindow.GetInstance().DisplayWarningText(f"Muscle MSS: {text}\n")
 
 
 _failing = weakref.WeakSet()

@@ -11,7 +11,7 @@ with the bone (issue 15: the Poisson-disc sampling of every posed bone at every 
 spacing; an entry keeps the points it was sampled on. A later bone with the same connectivity
 whose points are bitwise those points gets the cached spheres as they are (so the same input
 always gives the same spheres); one whose points are a rigid motion of them (Kabsch fit, largest
-residual below :data:`RIGID_TOLERANCE` of the bone's size) gets the cached spheres moved by that
+residual below :data:`SAME_BONE_RESIDUAL` of the bone's size) gets the cached spheres moved by that
 motion; any other bone is sampled afresh. Sampling is itself equivariant under rigid motions
 (candidates and their visiting order follow the triangles, not the coordinates), so a moved
 cached set equals a fresh sampling of the moved bone up to rounding. The bones' signed distance
@@ -35,7 +35,9 @@ from muscle_mss.core.rigid_fit import rigid_fit
 
 from . import vtk_arrays as V
 
-RIGID_TOLERANCE = 1e-9      # largest Kabsch residual / bone size that counts as the same bone
+SAME_BONE_RESIDUAL = 1e-9
+"""A bone whose points are a rigid motion of a cached entry's points (the Kabsch fit's largest
+residual at most this fraction of the bone's size) gets the cached entry, moved."""
 INSIDE_TOLERANCE = 1e-3
 """mm: a point (surface vertex, particle) counts as inside a bone when its signed distance is
 below minus this."""
@@ -109,7 +111,7 @@ def _cached(cache, key, points):
         if np.array_equal(rest, points):
             return value, None, None
         rotation, translation, residual, size = rigid_fit(rest, points)
-        if residual <= RIGID_TOLERANCE * (size + 1.0):
+        if residual <= SAME_BONE_RESIDUAL * (size + 1.0):
             return value, rotation, translation
     return None
 

@@ -2,8 +2,9 @@
 
 ``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss demo-scene OUT``
 writes the deterministic demo thigh scene (``--region arm``: the elbow) and its ``preview.png``;
-``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE OUT`` does the same for a user's
-scene (see :mod:`muscle_mss.filters.motion_run` for the files written).
+``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE
+OUT`` does the same for a user's scene (see :mod:`muscle_mss.filters.run_output` for the files
+written).
 """
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ import time as wallclock
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.scene import Scene
+
+from . import array_names as A
+from .run_options import add_run_options, settings_from, writing_from
 
 
 def scene_counts(scene: Scene) -> str:
@@ -53,20 +57,23 @@ def attachment_report(scene: Scene) -> str:
     return "\n".join(lines)
 
 
-DEMO_REGIONS = ("thigh", "arm")
+REGION_THIGH, REGION_ARM = "thigh", "arm"
+DEMO_REGIONS = (REGION_THIGH, REGION_ARM)
 """The demo scenes: the thigh's walk (the default) and the elbow's flexion."""
+DEMO_SIZES = ("full", "small")
+"""The demo scene's sizes (``demo_scene(size)``): the full scene (the default) and a quick one."""
 
 
 def demo_region_scene(region: str, size: str) -> Scene:
     """The demo scene of ``region`` (one of :data:`DEMO_REGIONS`) at ``size``."""
-    if region == "arm":
+    if region == REGION_ARM:
         from muscle_mss.core.demo_arm import demo_arm_scene
         return demo_arm_scene(size)
     from muscle_mss.core.demo_scene import demo_scene
     return demo_scene(size)
 
 
-def write_demo_scene(out: str, size: str, region: str = "thigh") -> Scene:
+def write_demo_scene(out: str, size: str, region: str = REGION_THIGH) -> Scene:
     """Write the demo scene folder ``out`` of ``region`` and its ``preview.png``; return the
     scene as read back and checked from the files."""
     from .pictures import scene_preview
@@ -106,25 +113,24 @@ def summary_table(rows) -> str:
     sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
     Deformer's push out) and before the push, mean iterations and seconds per time point; then
     the mean over muscles."""
-    from . import array_names as A
     by_muscle = {}
     for r in rows:
-        by_muscle.setdefault(r["muscle"], []).append(r)
+        by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
               f"{'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'iters':>6s} "
               f"{'s/time':>7s}")
     lines = [header, "-" * len(header)]
     means = []
     for name, rs in by_muscle.items():
-        err = [float(r["volume_error_pct"]) for r in rs]
+        err = [float(r[A.VOLUME_ERROR_PCT]) for r in rs]
         means.append(sum(err) / len(err))
         lines.append(f"{name:28s} {means[-1]:14.2f} {max(err):7.2f} "
-                     f"{max(float(r['max_fibre_strain']) for r in rs):10.3f} "
-                     f"{max(float(r['sphere_overlap_mm']) for r in rs):10.3f} "
+                     f"{max(float(r[A.MAX_FIBRE_STRAIN]) for r in rs):10.3f} "
+                     f"{max(float(r[A.SPHERE_OVERLAP_MM]) for r in rs):10.3f} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM):>10s} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_MM):>10s} "
-                     f"{sum(int(r['iterations']) for r in rs) / len(rs):6.0f} "
-                     f"{sum(float(r['seconds']) for r in rs) / len(rs):7.2f}")
+                     f"{sum(int(r[A.ITERATIONS]) for r in rs) / len(rs):6.0f} "
+                     f"{sum(float(r[A.SECONDS]) for r in rs) / len(rs):7.2f}")
     lines.append("-" * len(header))
     lines.append(f"{'mean over muscles':28s} {sum(means) / max(len(means), 1):14.2f}")
     return "\n".join(lines)
@@ -145,14 +151,14 @@ def timings_note(timings: dict) -> str:
 
 
 def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
-                   writing: dict | None = None) -> list:
+                   writing=None) -> list:
     """Run a whole motion with a progress bar; write summary, series index and pictures; print
-    the summary table. ``writing`` may give ``series`` (names to write) and ``compressor``
-    (see :func:`motion_run.write_time_point`). Returns the summary rows."""
-    from . import motion_run
+    the summary table. ``writing``: a :class:`run_output.Writing` (default: every series, the
+    default compressor). Returns the summary rows."""
+    from . import motion_run, run_output
     from .pictures import convergence_picture, poses_picture
 
-    writing = writing or {}
+    writing = writing or run_output.Writing()
     start = wallclock.perf_counter()
     compile_kernels()
     bar = {}
@@ -161,31 +167,31 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
         bar.setdefault("bar", ProgressBar(total, "solving"))
         bar["bar"].update(done, f"t={result.time:.3f} s {timings_note(result.timings)}")
 
-    series_names = writing.get("series", motion_run.SERIES)
-    compressor = writing.get("compressor", "lz4")
     pipeline, rows = motion_run.run_motion(scene_folder, out, settings, on_step=on_step,
-                                           series_names=series_names, compressor=compressor)
-    motion_run.write_summary(out, rows)
-    motion_run.write_index(out, pipeline.times, series_names=series_names)
+                                           series_names=writing.series,
+                                           compressor=writing.compressor)
+    run_output.write_summary(out, rows)
+    run_output.write_index(out, pipeline.times, series_names=writing.series)
     index = farthest_pose_index(scene.motion)
-    convergence_picture(os.path.join(out, "convergence", f"convergence_{index:04d}.csv"),
-                        os.path.join(out, "convergence.png"),
+    convergence_picture(os.path.join(out, run_output.convergence_file(index)),
+                        os.path.join(out, run_output.CONVERGENCE_PICTURE),
                         title=f"convergence at t = {pipeline.times[index]:.3f} s")
-    poses_picture(pipeline, index, os.path.join(out, "poses.png"))
+    poses_picture(pipeline, index, os.path.join(out, run_output.POSES_PICTURE))
     print(summary_table(rows))
-    print(f"wrote {out}: {', '.join(n + '.pvd' for n in series_names)}, summary.csv, "
-          f"convergence.png, poses.png in {wallclock.perf_counter() - start:.0f} s")
+    written = [*map(run_output.index_file, writing.series), run_output.SUMMARY_FILE,
+               run_output.CONVERGENCE_PICTURE, run_output.POSES_PICTURE]
+    print(f"wrote {out}: {', '.join(written)} in {wallclock.perf_counter() - start:.0f} s")
     return rows
 
 
 def compile_kernels() -> None:
     """Compile the numeric kernels first when this Python has not yet, saying so on stderr."""
-    from .warm_up import ensure_compiled
-    ensure_compiled(lambda text: print(text, file=sys.stderr, flush=True))
+    from .warm_up import ensure_compiled, stderr_notice
+    ensure_compiled(stderr_notice)
 
 
 def cmd_demo(args) -> int:
-    from .motion_run import check_output_folder
+    from .run_output import check_output_folder
     writing = writing_from(args)
     if check_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
         print(f"replacing the results of the previous run in {args.out}")
@@ -197,12 +203,12 @@ def cmd_demo(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from . import motion_run
+    from . import motion_run, run_output
     from .scene_io import load_scene
     writing = writing_from(args)
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
-    if motion_run.check_output_folder(args.out, args.overwrite):
+    if run_output.check_output_folder(args.out, args.overwrite):
         print(f"replacing the previous run in {args.out}")
     if args.time is None:
         run_and_report(args.scene, args.out, settings_from(args), scene, writing)
@@ -211,9 +217,9 @@ def cmd_run(args) -> int:
     pipeline = motion_run.build_pipeline(args.scene, settings_from(args))
     index = time_point_index(pipeline.times, args.time)
     result = motion_run.solve_time_point(pipeline, index)
-    motion_run.write_time_point(result, args.out, writing["series"], writing["compressor"])
-    motion_run.write_summary(args.out, result.rows)
-    motion_run.write_index(args.out, [result.time], [result.index], writing["series"])
+    run_output.write_time_point(result, args.out, writing.series, writing.compressor)
+    run_output.write_summary(args.out, result.rows)
+    run_output.write_index(args.out, [result.time], [result.index], writing.series)
     print(summary_table(result.rows))
     return 0
 
@@ -230,47 +236,8 @@ def time_point_index(times, time: float) -> int:
     return min(range(len(times)), key=lambda i: abs(times[i] - time))
 
 
-def settings_from(args) -> dict:
-    """Filter property settings from the options that were given."""
-    method = {"paper": "paper relaxation"}.get(getattr(args, "method", None),
-                                               getattr(args, "method", None))
-    pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
-             ("Iterations", args.iterations), ("Method", method),
-             ("Tolerance", getattr(args, "tolerance", None)))
-    return {name: value for name, value in pairs if value is not None}
-
-
-def writing_from(args) -> dict:
-    """What to write and how, from ``--write`` and ``--compressor``."""
-    from .motion_run import SERIES, parse_write_option
-    return {"series": parse_write_option(args.write or ",".join(SERIES)),
-            "compressor": args.compressor}
-
-
-def _add_run_options(p):
-    p.add_argument("--resolution", type=int, help="particles per fibre N (default 20)")
-    p.add_argument("--layout", choices=("lattice-6", "lattice-26", "Delaunay", "k-NN"),
-                   help="spring layout (default lattice-26)")
-    p.add_argument("--iterations", type=int, help="solver iterations per time point (default 500)")
-    p.add_argument("--write",
-                   help="series to write, comma-separated: surfaces,fibres,particles (default all)")
-    p.add_argument("--compressor", choices=("lz4", "zlib", "none"), default="lz4",
-                   help="compressor of the series' binary data (default lz4: fast)")
-    add_method_options(p)
-
-
-def add_method_options(p):
-    """``--method`` and ``--tolerance`` (shared with the pvpython/pvbatch batch)."""
-    p.add_argument("--method", choices=("quasi-static", "paper"),
-                   help="solver: the paper's relaxation (default) or the quasi-static "
-                        "equilibrium")
-    p.add_argument("--tolerance", type=float,
-                   help="quasi-static tolerance: largest particle move of a step, mm "
-                        "(default 0.001)")
-
-
 def _add_region_option(p):
-    p.add_argument("--region", choices=DEMO_REGIONS, default="thigh",
+    p.add_argument("--region", choices=DEMO_REGIONS, default=REGION_THIGH,
                    help="thigh: pelvis, femur, tibia, 13 muscles, a walking cycle (default); "
                         "arm: scapula, humerus, ulna, radius, the 7 elbow muscles, elbow flexion "
                         "10 -> 130 -> 10 degrees")
@@ -289,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo-scene", help="write a demo scene (thigh or arm) and preview.png")
     p.add_argument("out", help="folder to write")
-    p.add_argument("--size", choices=("full", "small"), default="full",
+    p.add_argument("--size", choices=DEMO_SIZES, default=DEMO_SIZES[0],
                    help="full: 64 fibres per muscle (thigh 13 muscles, arm 7); small: a quick "
                         "variant for tests")
     _add_region_option(p)
@@ -297,9 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="write the demo scene and run its whole walk")
     p.add_argument("out", nargs="?", default="demo_out", help="output folder (default demo_out)")
-    p.add_argument("--size", choices=("full", "small"), default="full")
+    p.add_argument("--size", choices=DEMO_SIZES, default=DEMO_SIZES[0])
     _add_region_option(p)
-    _add_run_options(p)
+    add_run_options(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("run", help="run a scene's motion (or one time point) and write results")
@@ -308,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time", type=float, help="only the time point nearest this time (s)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier run in OUT (refused without it)")
-    _add_run_options(p)
+    add_run_options(p)
     p.set_defaults(func=cmd_run)
     return parser
 

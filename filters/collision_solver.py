@@ -80,8 +80,8 @@ MODEL_BLOCK = "a model block of particles and spring lines"
 BONES = "PosedBones"
 POINT_ARRAYS = (A.REST_POSITION, A.FIBRE_ID, A.FIBRE_INDEX, A.FIXED, A.BOUNDARY, A.RADIUS, A.MASS)
 CELL_ARRAYS = (A.REST_LENGTH, A.STIFFNESS, A.DAMPING)
-MEAN_DISPLACEMENT = "mean_displacement_"
-BONE_CONTACTS = ("solid", "sphere set")
+BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES = "solid", "sphere set"
+BONE_CONTACTS = (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES)
 
 
 def solid_bones(posed_bones) -> BoneSolids:
@@ -266,7 +266,7 @@ class MSSCollisionSolver(MuscleFilter):
         Property("PenetrationTolerance", "double", DEFAULT_PENETRATION_TOLERANCE,
                  "Deepest overlap (mm) of two spheres of different objects at which the final "
                  "collision passes stop.", minimum=0.0, group="Collisions"),
-        Property("BoneContact", "enum", BONE_CONTACTS[0],
+        Property("BoneContact", "enum", BONE_CONTACT_SOLID,
                  "How the bones push muscle spheres (both methods, iterations and final "
                  "collision passes). solid (the default, and the faster): each bone is a solid "
                  "(its signed distance, sampled once per bone shape, about 10 s for the demo "
@@ -322,7 +322,7 @@ class MSSCollisionSolver(MuscleFilter):
         identities, parts = zip(*(self._checked_block(name, block) for name, block in blocks))
         model = self._posed_model([name for name, _ in blocks], parts, identities)
         bones, solids = (None, None, None), None
-        if self.choice("BoneContact") != "solid":
+        if self.choice("BoneContact") != BONE_CONTACT_SOLID:
             bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
         elif self.value("MuscleBone"):
             solids = solid_bones(inputs[1])
@@ -343,12 +343,12 @@ class MSSCollisionSolver(MuscleFilter):
                 V.set_field(out, key, value)
             items.append((name, out))
         V.fill_multiblock(outputs[0], items)
-        columns = {"iteration": np.arange(1, result.iterations + 1)}
+        columns = {A.ITERATION: np.arange(1, result.iterations + 1)}
         for m, (name, _) in enumerate(blocks):
-            columns[MEAN_DISPLACEMENT + name] = result.mean_displacement[:, m]
-        columns["colliding_pairs"] = result.colliding_pairs
-        columns["max_penetration"] = result.max_penetration
-        columns["seconds"] = result.seconds
+            columns[A.MEAN_DISPLACEMENT + name] = result.mean_displacement[:, m]
+        columns[A.COLLIDING_PAIRS] = result.colliding_pairs
+        columns[A.MAX_PENETRATION] = result.max_penetration
+        columns[A.SECONDS] = result.seconds
         quasi_static = result.method == METHOD_QUASI_STATIC
         if quasi_static:
             columns[A.RESIDUAL] = result.residual

@@ -26,6 +26,9 @@ from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .properties import Property
 
+DEFAULT_PARTICLES_PER_FIBRE = 20
+"""N, the paper's coarsest resolution (its experiments use 20, 40, 60 and 80)."""
+
 
 def muscle_seed(seed: int, name: str) -> list:
     """The ``numpy.random.default_rng`` seed of one muscle: the user's seed and the CRC-32 of
@@ -78,9 +81,10 @@ class FibreResampler(MuscleFilter):
     OUTPUTS = (Port("Particles", "vtkMultiBlockDataSet",
                     "particles per muscle, with the fibres as polylines through them"),)
     PROPERTIES = (
-        Property("ParticlesPerFibre", "int", 20,
+        Property("ParticlesPerFibre", "int", DEFAULT_PARTICLES_PER_FIBRE,
                  "Particles per fibre N, both fixed end particles included (at least 2). The "
-                 "paper's experiments use 20, 40, 60 and 80.", minimum=2, group="Sampling"),
+                 "paper's experiments use 20, 40, 60 and 80.",
+                 minimum=2, group="Sampling"),
         Property("Randomise", "bool", True,
                  "Place each free particle at a uniformly random arc-length place inside its own "
                  "one of the N-1 equal intervals (on), or at the interval end points (off). "

@@ -11,6 +11,8 @@ from scipy.spatial import cKDTree
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
 
+from . import array_names as A
+
 MUSCLE_COLOURS = (
     "#d62728", "#ff7f0e", "#bcbd22", "#2ca02c", "#17becf", "#1f77b4", "#9467bd",
     "#e377c2", "#8c564b", "#7f7f7f", "#aec7e8", "#ffbb78", "#98df8a",
@@ -144,19 +146,19 @@ def convergence_picture(convergence_csv, path, title="") -> str:
 
     with open(convergence_csv, newline="") as f:
         rows = list(csv.DictReader(f))
-    iterations = [int(r["iteration"]) for r in rows]
-    prefix = "mean_displacement_"
+    iterations = [int(r[A.ITERATION]) for r in rows]
+    prefix = A.MEAN_DISPLACEMENT
     figure, axes = pyplot.subplots(figsize=(9, 5.5), dpi=120)
     for m, column in enumerate(c for c in rows[0] if c.startswith(prefix)):
         axes.plot(iterations, [max(float(r[column]), 1e-12) for r in rows],
                   color=MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)], lw=1.2,
                   label=column[len(prefix):].replace("_", " "))
-    if "residual" in rows[0]:
+    if A.RESIDUAL in rows[0]:
         # the quasi-static solver's largest particle move of a step: what its Tolerance bounds
-        axes.plot(iterations, [max(float(r["residual"]), 1e-12) for r in rows], color="black",
+        axes.plot(iterations, [max(float(r[A.RESIDUAL]), 1e-12) for r in rows], color="black",
                   lw=1.6, ls="--", label="residual (largest move)")
     axes.set_yscale("log")
-    axes.set_xlabel("iteration")
+    axes.set_xlabel(A.ITERATION)
     axes.set_ylabel("mean displacement per iteration (mm)")
     axes.set_title(title or "solver convergence")
     axes.grid(True, which="both", alpha=0.3)

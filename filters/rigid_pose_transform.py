@@ -161,10 +161,10 @@ class RigidPoseTransform(MuscleFilter):
 
     def __init__(self):
         super().__init__()
-        self._motion_key = None
-        self._motion = None
-        self._rest_key = None
-        self._rest = None
+        # the motion read from the table and the rest pose, each kept with the key of the
+        # inputs (and properties) it was computed from: reused while the key stays the same
+        self._motion_key = self._motion = None
+        self._rest_key = self._rest = None
 
     # ---- time -------------------------------------------------------------------------------
     def _motion_times(self) -> list:

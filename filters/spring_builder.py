@@ -45,7 +45,10 @@ from .base import MuscleFilter, Port
 from .bone_sets import clear_of_bones
 from .properties import Property
 
-LAYOUTS = ("lattice-6", "lattice-26", "Delaunay", "k-NN")
+LAYOUT_LATTICE_6, LAYOUT_LATTICE_26 = "lattice-6", "lattice-26"
+LAYOUT_DELAUNAY, LAYOUT_KNN = "Delaunay", "k-NN"
+LAYOUTS = (LAYOUT_LATTICE_6, LAYOUT_LATTICE_26, LAYOUT_DELAUNAY, LAYOUT_KNN)
+DEFAULT_LAYOUT = LAYOUT_LATTICE_26
 NO_BONES_WARNING = (
     "the Bones input is not connected, so this output's radius array is not cleared of the "
     "bones: muscle spheres that overlap a bone at rest keep their radius here. The Rigid Pose "
@@ -54,7 +57,7 @@ NO_BONES_WARNING = (
     "would push those spheres out even when nothing moves and crush a muscle. Connect bones.vtm "
     "(the reader that feeds the Rigid Pose Transform's Bones) to the Spring Builder's Bones "
     "input to see the radii the solver uses.")
-LATTICE_NEIGHBOURHOOD = {"lattice-6": 6, "lattice-26": 26}
+LATTICE_NEIGHBOURHOOD = {LAYOUT_LATTICE_6: 6, LAYOUT_LATTICE_26: 26}
 PARTICLES = "particles"
 
 
@@ -160,7 +163,7 @@ class SpringBuilder(MuscleFilter):
     OUTPUTS = (Port("Model", "vtkMultiBlockDataSet",
                     "the mass-spring model per muscle: particles and springs"),)
     PROPERTIES = (
-        Property("Layout", "enum", "lattice-26",
+        Property("Layout", "enum", DEFAULT_LAYOUT,
                  "Which particles are joined by springs. lattice-6: the particles as a cubic "
                  "lattice (fibre_grid row, col and place along the fibre) with springs on the "
                  "cube sides; lattice-26: sides, face and space diagonals (the paper's fastest "
@@ -247,7 +250,7 @@ class SpringBuilder(MuscleFilter):
             bad = int(np.flatnonzero(~np.isfinite(rest).all(axis=1))[0])
             raise MuscleMSSError(f"{where}: particle {bad} has a NaN or infinite rest position")
         grid = V.point_array(block, A.FIBRE_GRID, where, required=False, dtype=np.int64)
-        if grid is not None or layout == "Delaunay":
+        if grid is not None or layout == LAYOUT_DELAUNAY:
             fibre_id = V.point_array(block, A.FIBRE_ID, where, dtype=np.int64)
             fibre_index = V.point_array(block, A.FIBRE_INDEX, where, dtype=np.int64)
         if layout in LATTICE_NEIGHBOURHOOD:
@@ -258,7 +261,7 @@ class SpringBuilder(MuscleFilter):
                     "k-NN for fibres without one")
             springs = lattice_springs(grid, fibre_id, fibre_index,
                                       LATTICE_NEIGHBOURHOOD[layout], where)
-        elif layout == "Delaunay":
+        elif layout == LAYOUT_DELAUNAY:
             springs = delaunay_springs(rest, where, surface, DELAUNAY_REACH * fibre_step(
                 rest, fibre_id, fibre_index))
         else:

@@ -3,11 +3,13 @@
 A cold start compiles the core's kernels (1–2 minutes; README "The first run"). Numba caches
 them (:mod:`muscle_mss.core.kernel_cache`) in a folder per Python, Numba and NumPy, so this
 happens once per Python and version of the sources. :func:`ensure_compiled` is called by the
-CLI and the batch before they solve, and by every filter before it executes (ParaView, plain
-VTK): when the cache is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`
-once, compiles every kernel by running tiny solves through the filter chain (each collision
-structure and blending, so that a later choice compiles nothing either) and records the cache
-as warm. ``./setup.sh`` runs it for the venv and Debian's Python::
+entry points, never by the filters themselves (the warm-up runs them): the CLI and the batch
+before they solve, the ParaView proxies (``muscle_mss.plugin.paraview_proxies``) before a filter
+executes, and ``muscle_mss.filters`` when a script takes a filter class from it. When the cache
+is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`, compiles every kernel
+by running tiny solves through the filter chain (each collision structure and blending, so that
+a later choice compiles nothing either) and records the cache as warm. ``./setup.sh`` runs it
+for the venv and Debian's Python::
 
     python -m muscle_mss.filters.warm_up
 """
@@ -22,23 +24,28 @@ import time
 from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 
 from muscle_mss.core import kernel_cache
+from muscle_mss.core.pose import LINEAR
+from muscle_mss.core.settings import METHOD_QUASI_STATIC, STRUCTURE_BVH, TERMINATION_THRESHOLD
+
+from . import motion_run
 
 VARIANTS = (
     {"Iterations": 3},
-    {"Iterations": 3, "CollisionStructure": "octree BVH", "Blending": "linear",
-     "Termination": "displacement threshold"},
-    {"Iterations": 3, "Method": "quasi-static"},
+    {"Iterations": 3, "CollisionStructure": STRUCTURE_BVH, "Blending": LINEAR,
+     "Termination": TERMINATION_THRESHOLD},
+    {"Iterations": 3, "Method": METHOD_QUASI_STATIC},
 )
 """Filter settings whose tiny solves together call every kernel with the argument types of a
 real run (property values select kernels, not argument types)."""
-_checked = {"done": False}
+_settled = {"done": False}
+"""Whether this process has found the kernels compiled or tried to compile them: later calls
+return at once (ParaView asks before every filter update; a failed warm-up is not retried)."""
 
 
 def warm_up(variants=VARIANTS) -> float:
     """Run one time point of a two-muscle scene through the whole filter chain for each of
     ``variants``; return the seconds taken (mostly compiling, when the cache is cold)."""
     from muscle_mss.core.demo_scene import demo_scene
-    from . import motion_run
     from .scene_io import write_scene
 
     start = time.perf_counter()
@@ -74,13 +81,11 @@ def _compiled_files() -> dict:
 
 
 def ensure_compiled(report) -> bool:
-    """Once per process: when the kernel cache of this Python is cold, ``report(text)`` the
-    compile notice, compile every kernel (:func:`warm_up`), record the cache as warm and report
-    the seconds it took. Returns True when it compiled."""
-    if _checked["done"]:
-        return False
-    _checked["done"] = True  # the warm-up runs filters, which call this again
-    if kernel_cache.is_warm():
+    """When the kernel cache of this Python is cold, ``report(text)`` the compile notice,
+    compile every kernel (:func:`warm_up`), record the cache as warm and report the seconds it
+    took; at most once per process. Returns True when it compiled."""
+    if _settled["done"] or kernel_cache.is_warm():
+        _settled["done"] = True
         return False
     report(kernel_cache.compile_notice())
     before = _compiled_files()
@@ -90,6 +95,8 @@ def ensure_compiled(report) -> bool:
         report(f"compiling ahead failed ({type(err).__name__}: {err}); the kernels compile as "
                "they are first used")
         return False
+    finally:
+        _settled["done"] = True
     # The marker's seconds are the next cold start's estimate: a warm-up that compiled nothing
     # (its kernels were cached, the marker was not) keeps the earlier estimate.
     kernel_cache.mark_warm(seconds if _compiled_files() != before
@@ -99,12 +106,20 @@ def ensure_compiled(report) -> bool:
     return True
 
 
+def stderr_notice(text: str) -> None:
+    """Show a compile notice on stderr (the CLI, the batch)."""
+    print(text, file=sys.stderr, flush=True)
+
+
+def output_window_notice(text: str) -> None:
+    """Show a compile notice among ParaView's output messages (VTK's output window: stderr
+    outside ParaView)."""
+    vtkOutputWindow.GetInstance().DisplayWarningText(f"Muscle MSS: {text}\n")
+
+
 def main() -> int:
     """``python -m muscle_mss.filters.warm_up``: compile (or find compiled) every kernel."""
-    # Run as a script this file is ``__main__``; the filters check the package's module.
-    from muscle_mss.filters import warm_up as package_module
-    if not package_module.ensure_compiled(lambda text: print(text, file=sys.stderr,
-                                                             flush=True)):
+    if not ensure_compiled(stderr_notice):
         print(f"numeric kernels already compiled in {kernel_cache.kernel_cache_dir()}",
               file=sys.stderr)
     return 0

@@ -8,6 +8,10 @@ and the "Muscle MSS" menu category, then registers it with ``smproxy.filter``. T
 (the state-file type) is the class name, e.g. ``FibreResampler``; the ``label`` gives the
 ``paraview.simple`` constructor, e.g. ``FibreResampler()`` from "Fibre Resampler".
 
+The plugin, not the filters, is ParaView's entry point: each subclass's ``RequestData`` first
+compiles the numeric kernels when this Python has not yet, saying so among the output messages
+(:func:`~muscle_mss.filters.warm_up.ensure_compiled`).
+
 Only ParaView imports this module (through ``paraview_plugins/muscle_mss_plugin.py``).
 """
 import importlib
@@ -15,7 +19,8 @@ from xml.sax.saxutils import escape, quoteattr
 
 from paraview.util.vtkAlgorithm import smhint, smproperty, smproxy
 
-from muscle_mss.filters import FILTER_NAMES, _EXPORTS
+from muscle_mss.filters import EXPORTS, FILTER_NAMES
+from muscle_mss.filters.warm_up import ensure_compiled, output_window_notice
 
 MENU_CATEGORY = "Muscle MSS"
 
@@ -83,6 +88,13 @@ def make_proxy(filter_class):
         namespace["Set" + prop.name] = smproperty.xml(property_xml(prop))(
             _setter(filter_class, prop))
 
+    def request_data(self, request, in_info, out_info):
+        # The plugin is ParaView's entry point: a first update in a Python whose kernels are
+        # not compiled says so among the output messages, then compiles them all.
+        ensure_compiled(output_window_notice)
+        return filter_class.RequestData(self, request, in_info, out_info)
+    namespace["RequestData"] = request_data
+
     def timestep_values(self):
         # Never called: vtkSITimeStepsProperty reads TIME_STEPS of output port 0, so that the
         # time keeper (time slider, animation) sees the motion's times.
@@ -116,5 +128,5 @@ def make_proxy(filter_class):
 
 
 for _name in FILTER_NAMES:
-    _module = importlib.import_module(f"muscle_mss.filters.{_EXPORTS[_name]}")
+    _module = importlib.import_module(f"muscle_mss.filters.{EXPORTS[_name]}")
     globals()[_name] = make_proxy(getattr(_module, _name))

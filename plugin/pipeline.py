@@ -14,6 +14,8 @@ Command line: ``pvpython -m muscle_mss.plugin.pipeline SCENE STATE.pvsm`` saves 
 import os
 import sys
 
+from muscle_mss.filters import array_names as A
+
 PLUGIN_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paraview_plugins",
                            "muscle_mss_plugin.py")
 PIPELINE_NAMES = ("Fibre Resampler", "Spring Builder", "Rigid Pose Transform",
@@ -110,10 +112,10 @@ def show_pipeline(p):
     simple.AssignViewToLayout(view=chart, layout=layout, hint=0)
     table = simple.Show(simple.OutputPort(p["MSS Collision Solver"], 1), chart)
     table.UseIndexForXAxis = 0
-    table.XArrayName = "iteration"
+    table.XArrayName = A.ITERATION
     table.SeriesVisibility = convergence_series(p["MSS Collision Solver"])
     chart.LeftAxisTitle = "mean displacement (mm)"
-    chart.BottomAxisTitle = "iteration"
+    chart.BottomAxisTitle = A.ITERATION
     chart.LeftAxisLogScale = 1
     simple.SetActiveView(view)
     return view, chart
@@ -134,7 +136,7 @@ def convergence_series(solver):
     solver.UpdatePipeline(simple.GetAnimationScene().AnimationTime)
     names = solver.GetDataInformation(1).GetRowDataInformation()
     return [names.GetArrayInformation(i).GetName() for i in range(names.GetNumberOfArrays())
-            if names.GetArrayInformation(i).GetName().startswith("mean_displacement_")]
+            if names.GetArrayInformation(i).GetName().startswith(A.MEAN_DISPLACEMENT)]
 
 
 def main(argv=None) -> int:

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from muscle_mss.filters import motion_run
+from muscle_mss.filters import run_output
 from muscle_mss.filters.cli import main
 
 pytest.importorskip("pyvista")  # the CLI's pictures; ParaView's Python has no pyvista
@@ -61,7 +61,7 @@ def test_one_time_point_with_overwrite_leaves_a_consistent_folder(small_scene_di
         rows = list(csv.DictReader(f))
     times = {r["time"] for r in rows}
     assert len(times) == 1 and "earlier" not in {r["muscle"] for r in rows}
-    for series in motion_run.SERIES:
+    for series in run_output.SERIES:
         entries = _pvd_entries(tmp_path / f"{series}.pvd")
         assert [float(t) for t, _ in entries] == [float(t) for t in times]
         assert (tmp_path / entries[0][1]).is_file()
@@ -83,7 +83,7 @@ def test_a_writer_failure_is_an_error_and_leaves_no_vtm(small_scene_dir, tmp_pat
                                                         monkeypatch):
     import shutil
 
-    class LosesItsFiles(motion_run.vtkXMLMultiBlockDataWriter):
+    class LosesItsFiles(run_output.vtkXMLMultiBlockDataWriter):
         """A writer whose .vtp files vanish (a full disk, a quota) while it reports success."""
 
         def Write(self):
@@ -91,7 +91,7 @@ def test_a_writer_failure_is_an_error_and_leaves_no_vtm(small_scene_dir, tmp_pat
             shutil.rmtree(os.path.splitext(self.GetFileName())[0])
             return result
 
-    monkeypatch.setattr(motion_run, "vtkXMLMultiBlockDataWriter", LosesItsFiles)
+    monkeypatch.setattr(run_output, "vtkXMLMultiBlockDataWriter", LosesItsFiles)
     assert _run(small_scene_dir, tmp_path) == 2
     err = capsys.readouterr().err
     assert "writing " in err and "surfaces_" in err and "_0.vtp" in err and "not written" in err

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from muscle_mss.filters.cli import main
-from muscle_mss.filters.motion_run import SUMMARY_COLUMNS
+from muscle_mss.filters.run_output import SUMMARY_COLUMNS
 
 pytest.importorskip("pyvista")  # the CLI's pictures; ParaView's Python has no pyvista
 

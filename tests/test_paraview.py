@@ -167,9 +167,10 @@ def test_mpi_batch_equals_the_serial_batch(small_scene_dir, tmp_path):
         assert (serial / name).read_text() == (parallel / name).read_text()
 
 
-def test_mpi_ranks_share_one_compile(small_scene_dir, tmp_path):
-    """With ParaView's Python's kernels not yet recorded as compiled, rank 0 compiles (says so,
-    once) while the other rank waits and then finds them compiled."""
+def _paraview_kernels_unmarked(folder):
+    """A copy in ``folder`` of ParaView's Python's kernel cache, every kernel compiled but not
+    recorded as such (its warm markers removed): a run in it goes through the cold path (the
+    notice, the warm-up) in seconds. Returns the removed markers' paths."""
     import glob
     import os
     import shutil
@@ -179,15 +180,39 @@ def test_mpi_ranks_share_one_compile(small_scene_dir, tmp_path):
     run(["pvpython", "-m", "muscle_mss.filters.warm_up"])  # ParaView's Python's own cache
     digest = kernel_cache.sources_digest(os.path.join(REPO, "core"))
     (own,) = glob.glob(str(REPO / ".numba-cache" / "debian" / f"numba-{digest}-*numba0.56*"))
-    shutil.copytree(own, tmp_path / "kernels" / os.path.basename(own))
-    markers = list((tmp_path / "kernels").rglob(f"{kernel_cache.WARM_PREFIX}*.json"))
+    shutil.copytree(own, folder / os.path.basename(own))
+    markers = list(folder.rglob(f"{kernel_cache.WARM_PREFIX}*.json"))
     for marker in markers:
         marker.unlink()
+    return markers
+
+
+def test_mpi_ranks_share_one_compile(small_scene_dir, tmp_path):
+    """With ParaView's Python's kernels not yet recorded as compiled, rank 0 compiles (says so,
+    once) while the other rank waits and then finds them compiled."""
+    from paraview_support import run
+
+    markers = _paraview_kernels_unmarked(tmp_path / "kernels")
     proc = run(["mpiexec", "--allow-run-as-root", "--oversubscribe", "-n", "2", "pvbatch",
                 "--sym", "-m", "muscle_mss.plugin.batch", small_scene_dir, tmp_path / "out",
                 "--iterations", "3"], NUMBA_CACHE_DIR=tmp_path / "kernels")
     assert proc.stderr.count("compiling the numeric kernels once for this Python") == 1
     assert all(marker.exists() for marker in markers) and markers
+
+
+def test_the_plugin_says_it_compiles_among_the_output_messages(small_scene_dir, tmp_path):
+    """ParaView's entry point is the plugin: the first filter update in a ParaView Python whose
+    kernels are not recorded as compiled says so once among the output messages, then compiles
+    them all; the next session finds them compiled and says nothing."""
+    from paraview_support import run
+
+    markers = _paraview_kernels_unmarked(tmp_path / "kernels")
+    runs = [run(["pvpython", SCRIPTS / "bad_input.py", small_scene_dir, '{"Iterations": 3}',
+                 "0.5"], NUMBA_CACHE_DIR=tmp_path / "kernels") for _ in range(2)]
+    notice = "compiling the numeric kernels once for this Python"
+    assert runs[0].stderr.count("Muscle MSS: " + notice) == 1
+    assert all(marker.exists() for marker in markers) and markers
+    assert notice not in runs[1].stderr
 
 
 def test_shipped_demo_state_opens_the_demo_walk(tmp_path):

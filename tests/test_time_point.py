@@ -9,7 +9,7 @@ from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.penetration import max_penetration_pairs, max_penetration_per_object
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.rigid_fit import rigid_fit
-from muscle_mss.filters import bone_sets, check_cache, motion_run
+from muscle_mss.filters import bone_sets, check_cache, motion_run, run_output
 from muscle_mss.filters.cli import main, timings_note
 
 SPACING = 3.0
@@ -252,8 +252,8 @@ def test_convergence_table_is_written_column_by_column_as_the_csv_module_writes_
                "odd": np.array([1e-5, 1e16, -0.0, 1.5e300, np.inf, np.nan, 0.1, 2.0] * 5)}
     for name, extra in (("numbers", {}), ("with text", {"method": ["paper"] * 40})):
         table = {**columns, **extra}
-        motion_run.write_columns(tmp_path / f"{name}.csv", table)
-        motion_run.write_csv(tmp_path / f"{name} ref.csv", list(table), zip(*table.values()))
+        run_output.write_columns(tmp_path / f"{name}.csv", table)
+        run_output.write_csv(tmp_path / f"{name} ref.csv", list(table), zip(*table.values()))
         assert (tmp_path / f"{name}.csv").read_bytes() == \
             (tmp_path / f"{name} ref.csv").read_bytes()
 
@@ -269,7 +269,7 @@ def test_write_option_is_checked_before_solving(small_scene_dir, tmp_path, capsy
                  "surfaces,bones"]) == 2
     assert "--write 'surfaces,bones': bones is not a series" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
-    assert motion_run.parse_write_option("particles, surfaces") == ("surfaces", "particles")
+    assert run_output.parse_write_option("particles, surfaces") == ("surfaces", "particles")
 
 
 def test_run_writes_only_the_series_asked_for(small_scene_dir, tmp_path):
@@ -296,13 +296,13 @@ def test_every_compressor_reads_back_the_same_series_and_caches_repeat_bitwise(
     pipeline = motion_run.build_pipeline(small_scene_dir, {"Iterations": 5})
     result = motion_run.solve_time_point(pipeline, 2)
     assert set(result.timings) == {"solve", "surface", "statistics"}
-    for compressor in motion_run.COMPRESSORS:
+    for compressor in run_output.COMPRESSORS:
         out = tmp_path / compressor
-        motion_run.write_time_point(result, str(out), compressor=compressor)
+        run_output.write_time_point(result, str(out), compressor=compressor)
         assert result.timings["write"] > 0
-        for name, data in zip(motion_run.SERIES,
+        for name, data in zip(run_output.SERIES,
                               (result.surfaces, result.fibres, result.particles)):
-            back = read_blocks(out / motion_run.series_file(name, 2))
+            back = read_blocks(out / run_output.series_file(name, 2))
             want = {n: V.points_of(b) for n, b in V.blocks(data, name)}
             assert back.keys() == want.keys()
             for n in want:
@@ -331,7 +331,7 @@ def test_a_time_points_result_stays_as_it_was_after_later_time_points(small_scen
     def snapshot(result):
         return {(series, name): (V.points_of(block).copy(), {
             k: v.copy() for k, v in V.point_arrays(block).items()})
-            for series, data in zip(motion_run.SERIES, (result.surfaces, result.fibres,
+            for series, data in zip(run_output.SERIES, (result.surfaces, result.fibres,
                                                          result.particles))
             for name, block in V.blocks(data, series)}
 

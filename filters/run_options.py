@@ -1,0 +1,61 @@
+"""The options of a motion run, shared by ``muscle-mss demo`` / ``muscle-mss run`` and the
+pvpython/pvbatch entry point ``muscle_mss.plugin.batch``.
+
+Every choice and default comes from where the filters take it (DESIGN §2: one definition): the
+layouts from the Spring Builder, the particles per fibre from the Fibre Resampler, the methods,
+iterations and tolerance from :mod:`muscle_mss.core.settings`, the series and compressors from
+:mod:`muscle_mss.filters.run_output`.
+"""
+from __future__ import annotations
+
+from muscle_mss.core.settings import (DEFAULT_ITERATIONS, DEFAULT_METHOD, DEFAULT_TOLERANCE,
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS)
+
+from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
+from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
+from .spring_builder import DEFAULT_LAYOUT, LAYOUTS
+
+METHOD_OPTIONS = {method.split()[0]: method for method in METHODS}
+"""``--method`` values: each of the solver's methods by its first word (``paper`` for
+``paper relaxation``)."""
+
+
+def method_option(method: str) -> str:
+    """The ``--method`` value of one of the solver's :data:`~muscle_mss.core.settings.METHODS`."""
+    return next(option for option, name in METHOD_OPTIONS.items() if name == method)
+
+
+def add_run_options(p) -> None:
+    """The options that set up a run (``argparse`` parser ``p``): what the filters compute
+    (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``) and what is
+    written, and how (``--write``, ``--compressor``)."""
+    p.add_argument("--resolution", type=int,
+                   help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
+    p.add_argument("--layout", choices=LAYOUTS, help=f"spring layout (default {DEFAULT_LAYOUT})")
+    p.add_argument("--iterations", type=int,
+                   help=f"solver iterations per time point (default {DEFAULT_ITERATIONS})")
+    p.add_argument("--write", help=f"series to write, comma-separated: {','.join(SERIES)} "
+                                   "(default all)")
+    p.add_argument("--compressor", choices=COMPRESSORS, default=DEFAULT_COMPRESSOR,
+                   help=f"compressor of the series' binary data (default {DEFAULT_COMPRESSOR}: "
+                        "fast)")
+    p.add_argument("--method", choices=tuple(METHOD_OPTIONS),
+                   help=f"solver: {method_option(METHOD_RELAXATION)}, the paper's relaxation, or "
+                        f"{method_option(METHOD_QUASI_STATIC)}, the quasi-static equilibrium "
+                        f"(default {method_option(DEFAULT_METHOD)})")
+    p.add_argument("--tolerance", type=float,
+                   help="quasi-static tolerance: largest particle move of a step, mm "
+                        f"(default {DEFAULT_TOLERANCE:g})")
+
+
+def settings_from(args) -> dict:
+    """Filter property settings from the options that were given."""
+    pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
+             ("Iterations", args.iterations), ("Method", METHOD_OPTIONS.get(args.method)),
+             ("Tolerance", args.tolerance))
+    return {name: value for name, value in pairs if value is not None}
+
+
+def writing_from(args) -> Writing:
+    """What to write and how, from ``--write`` and ``--compressor``."""
+    return Writing(parse_write_option(args.write or ",".join(SERIES)), args.compressor)

@@ -1,0 +1,289 @@
+"""The files a run of a whole motion writes in its output folder (DESIGN §7).
+
+What :mod:`muscle_mss.filters.motion_run` computes, written the same way by ``muscle-mss demo``
+/ ``muscle-mss run`` and the pvpython/pvbatch entry point ``muscle_mss.plugin.batch``:
+
+* ``surfaces.pvd``, ``fibres.pvd``, ``particles.pvd``: time series (one ``.vtm`` per time point
+  under ``series/``) of the deformed muscle surfaces, fibre polylines and solved particles;
+* ``summary.csv``: one row per (time, muscle) with the columns of :data:`SUMMARY_COLUMNS`;
+* ``convergence/convergence_<k>.csv``: the solver's per-iteration table of each time point.
+
+Every file is written atomically (a reader sees the old file or the whole new one), and a
+``.vtm`` never names files that are not there.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import re
+import shutil
+import tempfile
+import time as wallclock
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+from vtkmodules.vtkCommonCore import vtkVersion
+from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataWriter
+
+from muscle_mss.core.errors import MuscleMSSError
+
+from . import array_names as A
+
+SUMMARY_COLUMNS = (A.TIME, A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
+                   A.MEAN_FIBRE_STRAIN, A.MAX_FIBRE_STRAIN, A.SPHERE_OVERLAP_MM,
+                   A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
+                   A.NEW_IN_BONE_DEPTH_AFTER_MM, *A.FREE_IN_BONE_FIELDS, A.ITERATIONS,
+                   A.CONVERGED, A.SECONDS)
+"""``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
+other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
+(``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed
+surface vertices inside a bone they were outside at rest, before and after the MVC Surface
+Deformer pushes them out; ``free_particle*``: solved particles that are not tendon attachments
+with their centre inside a bone, and the deepest (by the bones' signed distance fields), all of
+them and those not inside a bone at rest (``*new_in_bone*``), as the MSS Collision Solver
+reports them."""
+SURFACES, FIBRES, PARTICLES = "surfaces", "fibres", "particles"
+SERIES = (SURFACES, FIBRES, PARTICLES)
+"""The series a run writes (``--write`` picks some), each as ``<name>.pvd``."""
+SUMMARY_FILE = "summary.csv"
+SERIES_FOLDER = "series"
+CONVERGENCE_FOLDER = "convergence"
+CONVERGENCE_PICTURE = "convergence.png"
+POSES_PICTURE = "poses.png"
+RUN_FILES = (SUMMARY_FILE, *(f"{name}.pvd" for name in SERIES), CONVERGENCE_PICTURE,
+             POSES_PICTURE, SERIES_FOLDER, CONVERGENCE_FOLDER)
+"""What a run writes in its output folder (files and folders): another run's results."""
+PARALLEL_WRITES = (vtkVersion.GetVTKMajorVersion(), vtkVersion.GetVTKMinorVersion()) > (9, 2)
+"""Whether :func:`write_time_point` writes the series each by its own thread: the pip VTK (9.7)
+lets go of Python's lock in a writer's ``Write()`` (the demo thigh's three series at N = 20:
+30 → 25 ms alone, 40 → 33 ms in a run on two cores), ParaView 5.11's VTK 9.2 does not (60 →
+63 ms with threads)."""
+COMPRESSOR_LZ4, COMPRESSOR_ZLIB, COMPRESSOR_NONE = "lz4", "zlib", "none"
+COMPRESSORS = (COMPRESSOR_LZ4, COMPRESSOR_ZLIB, COMPRESSOR_NONE)
+"""Compressors of the series' appended binary data: LZ4 (default: fast, readable by ParaView
+5.x), ZLib (smaller, slower: VTK's own default) or none (fastest, largest)."""
+DEFAULT_COMPRESSOR = COMPRESSOR_LZ4
+
+
+@dataclass(frozen=True)
+class Writing:
+    """What is written of each time point, and how: the series (some of :data:`SERIES`, in
+    that order) and the compressor of their binary data (one of :data:`COMPRESSORS`)."""
+
+    series: tuple = SERIES
+    compressor: str = DEFAULT_COMPRESSOR
+
+
+def series_file(name: str, index: int) -> str:
+    """Relative path of one time point's file of a series."""
+    return os.path.join(SERIES_FOLDER, f"{name}_{index:04d}.vtm")
+
+
+def index_file(name: str) -> str:
+    """The ``.pvd`` index of a series: its time points' files and times."""
+    return f"{name}.pvd"
+
+
+def convergence_file(index: int) -> str:
+    """Relative path of one time point's convergence table."""
+    return os.path.join(CONVERGENCE_FOLDER, f"convergence_{index:04d}.csv")
+
+
+def previous_run(out: str) -> list:
+    """The files and folders of a run (:data:`RUN_FILES`) that ``out`` holds already."""
+    return [name for name in RUN_FILES if os.path.exists(os.path.join(out, name))]
+
+
+def check_output_folder(out: str, overwrite: bool = False) -> list:
+    """Check ``out`` before solving: it is created if missing and must be writable; when it
+    holds another run's results they are refused, or removed with ``overwrite`` (so that no
+    file of the earlier run, e.g. a time point it had in addition, stays beside the new ones).
+    Returns the names removed. Raises :class:`MuscleMSSError` naming the folder and the cause."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise MuscleMSSError(f"output folder {out} is a file; give a folder")
+    found = previous_run(out)
+    if found and not overwrite:
+        raise MuscleMSSError(f"output folder {out} holds the results of another run "
+                             f"({', '.join(found)}); choose another folder or pass --overwrite "
+                             "to replace them")
+    try:
+        os.makedirs(out, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
+            pass
+        for name in found:
+            path = os.path.join(out, name)
+            if os.path.isdir(path):
+                shutil.rmtree(path)
+            else:
+                os.remove(path)
+    except OSError as err:
+        raise MuscleMSSError(f"output folder {out} cannot be written: "
+                             f"{err.strerror or err}") from None
+    return found
+
+
+def write_time_point(result, out: str, series_names=SERIES,
+                     compressor: str = DEFAULT_COMPRESSOR) -> None:
+    """Write one time point's (a :class:`~muscle_mss.filters.motion_run.TimePointResult`) series
+    files (those of ``series_names``, a subset of
+    :data:`SERIES`) and convergence table under ``out``; the series as appended raw binary
+    compressed with ``compressor`` (one of :data:`COMPRESSORS`). Adds the seconds taken to
+    ``result.timings["write"]``.
+
+    Each ``.vtm`` is written with its ``.vtp`` files into a private folder first, checked (the
+    writer succeeded and every file the ``.vtm`` names exists), then renamed into ``series/``:
+    a failed write raises :class:`MuscleMSSError` and never leaves a ``.vtm`` pointing at
+    missing files. Where VTK lets it (:data:`PARALLEL_WRITES`) the series are written at the
+    same time, each by its own thread (they share no array); this returns when all are
+    written."""
+    start = wallclock.perf_counter()
+    series = os.path.join(out, SERIES_FOLDER)
+    try:
+        os.makedirs(series, exist_ok=True)
+        os.makedirs(os.path.join(out, CONVERGENCE_FOLDER), exist_ok=True)
+        staging = tempfile.mkdtemp(dir=series, prefix=".writing-")
+    except OSError as err:
+        raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
+
+    def write(name, data):
+        staged = os.path.join(staging, os.path.basename(series_file(name, result.index)))
+        writer = vtkXMLMultiBlockDataWriter()
+        writer.SetFileName(staged)
+        writer.SetInputData(data)
+        configure_writer(writer, compressor)
+        return staged, writer.Write() == 1 and writer.GetErrorCode() == 0
+
+    jobs = [(name, data) for name, data in
+            zip(SERIES, (result.surfaces, result.fibres, result.particles))
+            if name in series_names]
+    try:
+        with ThreadPoolExecutor(max(len(jobs), 1) if PARALLEL_WRITES else 1) as writers:
+            written = list(writers.map(lambda job: write(*job), jobs))
+        for (name, _), (staged, succeeded) in zip(jobs, written):
+            final = os.path.join(out, series_file(name, result.index))
+            _check_written(staged, final, succeeded)
+            _move_into_place(staged, final)
+    except OSError as err:
+        raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    write_columns(os.path.join(out, convergence_file(result.index)), result.convergence)
+    result.timings["write"] = wallclock.perf_counter() - start
+
+
+def configure_writer(writer, compressor: str) -> None:
+    """Appended raw binary (no base64) with ``compressor`` (one of :data:`COMPRESSORS`)."""
+    writer.SetDataModeToAppended()
+    writer.EncodeAppendedDataOff()
+    {COMPRESSOR_LZ4: writer.SetCompressorTypeToLZ4,
+     COMPRESSOR_ZLIB: writer.SetCompressorTypeToZLib,
+     COMPRESSOR_NONE: writer.SetCompressorTypeToNone}[compressor]()
+
+
+def parse_write_option(text: str) -> tuple:
+    """The series named by a ``--write`` option (``surfaces,fibres,particles`` or a part of it,
+    in any order), in :data:`SERIES` order; :class:`MuscleMSSError` naming an unknown one."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in SERIES]
+    if unknown or not names:
+        raise MuscleMSSError(f"--write {text!r}: {', '.join(unknown) or 'nothing'} is not a "
+                             f"series; give one or more of {','.join(SERIES)}")
+    return tuple(n for n in SERIES if n in names)
+
+
+def _check_written(vtm: str, final: str, writer_ok: bool) -> None:
+    """Raise unless the writer reported success and wrote ``vtm`` and every file it names."""
+    missing = [] if os.path.isfile(vtm) else [os.path.basename(final)]
+    if not missing:
+        with open(vtm) as f:
+            named = re.findall(r'file="([^"]+)"', f.read())
+        missing = [n for n in named if not os.path.isfile(os.path.join(os.path.dirname(vtm), n))]
+    if missing or not writer_ok:
+        raise MuscleMSSError(f"writing {final} failed"
+                             + (f": {', '.join(missing)} not written" if missing else "")
+                             + "; check the free space and permissions of the output folder")
+
+
+def _move_into_place(staged_vtm: str, final_vtm: str) -> None:
+    """Rename a staged ``.vtm`` and its folder of ``.vtp`` files over the final ones; the
+    ``.vtm`` last, so that it never names files that are not there."""
+    staged_dir, final_dir = os.path.splitext(staged_vtm)[0], os.path.splitext(final_vtm)[0]
+    if os.path.exists(final_vtm):
+        os.remove(final_vtm)
+    if os.path.isdir(final_dir):
+        shutil.rmtree(final_dir)
+    if os.path.isdir(staged_dir):
+        os.replace(staged_dir, final_dir)
+    os.replace(staged_vtm, final_vtm)
+
+
+def _write_atomically(path: str, text_lines) -> None:
+    """Write ``path`` through a temporary file renamed over it; raise :class:`MuscleMSSError`
+    naming the file when it cannot be written."""
+    temporary = f"{path}.{os.getpid()}.tmp"
+    try:
+        with open(temporary, "w", newline="") as f:
+            text_lines(f)
+        os.replace(temporary, path)
+    except OSError as err:
+        if os.path.exists(temporary):
+            os.remove(temporary)
+        raise MuscleMSSError(f"cannot write {path}: {err.strerror or err}") from None
+
+
+def write_csv(path, header, rows) -> None:
+    """Write a CSV file (atomically: a reader sees the old file or the whole new one)."""
+    def lines(f):
+        out = csv.writer(f)
+        out.writerow(header)
+        for row in rows:
+            out.writerow([_csv_value(v) for v in row])
+    _write_atomically(path, lines)
+
+
+def write_columns(path, columns: dict) -> None:
+    """Write a table of ``columns`` (name → NumPy array or list) as :func:`write_csv` would
+    write its rows (the same bytes), column by column: a time point's convergence table (500 x
+    17 values) took 11 ms through ``csv.writer``, most of it per-value Python calls."""
+    texts = [[str(name) for name in columns]]
+    for values in columns.values():
+        if isinstance(values, np.ndarray) and values.dtype.kind == "f":
+            texts.append(list(map(repr, values.tolist())))     # float repr, as _csv_value
+        elif isinstance(values, np.ndarray) and values.dtype.kind in "iub":
+            texts.append(list(map(str, values.tolist())))           # ints; bools as True
+        else:
+            texts.append(None)
+    if any(t is None for t in texts[1:]):        # text or mixed columns: the csv module
+        write_csv(path, list(columns), zip(*columns.values()))
+        return
+    header, *cells = texts
+    rows = [",".join(header)] + [",".join(row) for row in zip(*cells)]
+    _write_atomically(path, lambda f: f.write("\r\n".join(rows) + "\r\n"))
+
+
+def _csv_value(v):
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+def write_index(out: str, times, indices=None, series_names=SERIES) -> None:
+    """Write the ``.pvd`` index of each series of ``series_names`` for time points ``indices``
+    (default ``0..len(times)-1``) at ``times``."""
+    indices = range(len(times)) if indices is None else indices
+    for name in series_names:
+        entries = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" '
+                            f'file="{series_file(name, i)}"/>' for i, t in zip(indices, times))
+        _write_atomically(os.path.join(out, index_file(name)), lambda f: f.write(
+            '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n'
+            f"  <Collection>\n{entries}\n  </Collection>\n</VTKFile>\n"))
+
+
+def write_summary(out: str, rows) -> str:
+    """Write ``summary.csv`` (rows sorted by time point, muscles in scene order)."""
+    path = os.path.join(out, SUMMARY_FILE)
+    write_csv(path, SUMMARY_COLUMNS, ([r[c] for c in SUMMARY_COLUMNS] for r in rows))
+    return path
