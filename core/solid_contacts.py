@@ -15,7 +15,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from .bone_distance import BRICK, NO_SOLIDS, BoneSolids, push_rest, sample, to_rest
+from .bone_distance import BRICK, NO_SOLIDS, BoneSolids, FieldGrid, push_rest, sample, to_rest
 from .model import PreparedModel
 
 # A particle whose distance to every solid bone exceeds its reach by a slack plus its move since
@@ -29,21 +29,23 @@ SOLID_LIPSCHITZ = np.sqrt(3.0)
 
 SOLID_SLACK_CELLS = 1.0         # fine cells: the slack in mm is this times the field's spacing
 
-SolidState = namedtuple("SolidState", (
-    "transforms", "clearance", "tolerance", "origin", "spacing", "dims", "coarse_start",
-    "coarse", "index_start", "brick_index", "bricks", "x", "points", "radius", "anchor",
-    "margin", "slack", "disp", "collided", "count", "pen", "ptr"))
+SolidState = namedtuple("SolidState", ("transforms", "clearance", "tolerance")
+                        + FieldGrid._fields + ("x", "points", "radius", "anchor", "margin",
+                                               "slack", "disp", "collided", "count", "pen",
+                                               "ptr"))
 SolidState.__doc__ = """The solid contacts' state for one solve (flat: it goes to parallel
 loops).
 
 The bones (:meth:`~muscle_mss.core.bone_distance.BoneSolids.kernel_arguments`: ``transforms``
 (b, 3, 4) field frame to posed, ``clearance`` (b,) mm, the push ``tolerance`` mm and the packed
-fields ``origin`` ... ``bricks``); the positions ``x`` (3, n) mm they read; the particles
-``points`` (k,) of :func:`solid_points` with their sphere radii ``radius`` (k,) mm (0: none);
-the skip state of :func:`solid_contacts_range` (``anchor`` (3, k) each particle's position when
-last sampled and ``margin`` (k,) its least clearance of the bones then, mm; ``slack`` mm); the
-contact state (``disp`` (3, k) mm, ``collided`` (k,), ``count`` (k,) contacts, ``pen`` (k,) mm
-the deepest) and each muscle's first particle among them ``ptr`` (M + 1,)."""
+fields ``origin`` ... ``bricks``, a :data:`~muscle_mss.core.bone_distance.FieldGrid` laid flat,
+which :func:`solid_contacts_range` puts together again); the positions ``x`` (3, n) mm they
+read; the particles ``points`` (k,) of :func:`solid_points` with their sphere radii ``radius``
+(k,) mm (0: none); the skip state of :func:`solid_contacts_range` (``anchor`` (3, k) each
+particle's position when last sampled and ``margin`` (k,) its least clearance of the bones then,
+mm; ``slack`` mm); the contact state (``disp`` (3, k) mm, ``collided`` (k,), ``count`` (k,)
+contacts, ``pen`` (k,) mm the deepest) and each muscle's first particle among them ``ptr``
+(M + 1,)."""
 
 
 def solid_points(prep: PreparedModel) -> np.ndarray:
@@ -92,6 +94,8 @@ def solid_contacts_range(first, last, solids, box):
     (transforms, clearance, tolerance, origin, spacing, dims, coarse_start, coarse, index_start,
      brick_index, bricks, x, points, radius, anchor, margin, slack, disp, collided, count,
      pen, _) = solids
+    grid = FieldGrid(origin, spacing, dims, coarse_start, coarse, index_start, brick_index,
+                     bricks)
     inside = True
     for k in range(first, last):
         count[k] = 0
@@ -121,14 +125,12 @@ def solid_contacts_range(first, last, solids, box):
             if away > 0.0 and away >= reach:
                 clear = min(clear, away - reach)
                 continue
-            value = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
-                            index_start, brick_index, bricks)[0]
+            value = sample(b, qx, qy, qz, grid)[0]
             if value >= reach - tolerance:
                 clear = min(clear, value - reach)
                 continue
             clear = -np.inf
-            px, py, pz, _ = push_rest(b, qx, qy, qz, reach, tolerance, origin, spacing, dims,
-                                       coarse_start, coarse, index_start, brick_index, bricks)
+            px, py, pz, _ = push_rest(b, qx, qy, qz, reach, tolerance, grid)
             m = transforms[b]
             dx, dy, dz = px - qx, py - qy, pz - qz
             for axis in range(3):
