@@ -350,7 +350,7 @@ def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(mo
     def everything_near(*arguments):
         arguments[-1][:] = True
 
-    monkeypatch.setattr(Q, "_near_solids", everything_near)
+    monkeypatch.setattr(Q.energy, "near_solids", everything_near)
     full = Q.solve(model, settings=settings, bone_solids=solids)
     np.testing.assert_array_equal(listed.positions, full.positions)
     np.testing.assert_array_equal(listed.residual, full.residual)

@@ -262,7 +262,7 @@ class ContactEnergy:
         self.lists_built = True
         self.rebuilds += 1
 
-    def _refreshnear_solids(self):
+    def _refresh_near_solids(self):
         """Rebuild the list of solid points near a bone when one of them moved half the skin
         since (see ``solid_built``)."""
         if self.near is not None and not moved_more(self.x, self.solid_points,
@@ -299,7 +299,7 @@ class ContactEnergy:
                       self.overlaps, self.deepest)
         if self.solids is not None and len(self.solid_points):
             solids = self.solids
-            self._refreshnear_solids()
+            self._refresh_near_solids()
             index, points, radius, fixed, energy, overlaps, deepest = self.near
             for array in (self.solid_energy, self.solid_overlaps, self.solid_deepest, energy,
                           overlaps, deepest):
