@@ -185,12 +185,12 @@ class BoneSolids:
         return float(0.5 * np.linalg.norm(boxes, axis=1).max() + np.max(self.clearance))
 
     def kernel_arguments(self) -> tuple:
-        """``(transforms, clearance, push tolerance mm, *fields.grid())`` for the kernels;
-        :data:`NO_SOLIDS` has the same types and no bone."""
+        """``(transforms, clearance, push tolerance mm)`` for the kernels, which take the
+        fields as ``fields.grid()`` beside them; :data:`NO_SOLIDS` has the same types and no
+        bone."""
         tolerance = 1e-3 * float(self.fields.spacing.min()) if len(self.fields) else 0.0
-        return ((np.ascontiguousarray(self.transforms, dtype=np.float64),
-                 np.ascontiguousarray(self.clearance, dtype=np.float64), tolerance)
-                + self.fields.grid())
+        return (np.ascontiguousarray(self.transforms, dtype=np.float64),
+                np.ascontiguousarray(self.clearance, dtype=np.float64), tolerance)
 
 
 # ---- lookup ----------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from ..errors import MuscleMSSError
 from ..model import MSSModel, PreparedModel, SolveResult, check_history_size, prepare
 from ..settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, STRUCTURES, TERMINATION_BUDGET,
                         TERMINATION_ITERATIONS, SolverSettings)
-from ..solid_contacts import solid_state
+from ..solid_contacts import solid_grid, solid_state
 from .energy import ContactEnergy
 from .lbfgs import LBFGSHistory, direction, largest_move, settled
 from .preconditioner import InitialInverseHessian, preconditioner
@@ -266,7 +266,8 @@ def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids,
     use_bvh = settings.structure == STRUCTURE_BVH
     hashed, bone_table, lists = hash_state(spheres, not use_bvh)
     solids = solid_state(bone_solids, x, prep)
-    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings), solids)
+    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings), solids,
+                        solid_grid(bone_solids))
     solid_collided = np.zeros(len(solids.points), dtype=np.uint8)
     if len(energy_of.solid_points):     # the same particles, the same order
         solid_collided[:] = touching_solid
