@@ -31,12 +31,14 @@ For a solver (issue 14): build the set once per rest bones
 Surface Deformer's cached ``bone_fields``), and per pose call ``push_out_of_bones(fields,
 centres, radii, transforms, active=~fixed)`` with the bones' (b, 3, 4) rest-to-posed
 transforms (``muscle_mss.core.pose.pose_at``); add the returned (n, 3) displacements. Inside a
-Numba loop, :func:`push_rest` / :func:`sample` take a bone index, a rest-frame point and
-``*fields.arrays()``, and :func:`to_rest` maps a posed point to bone b's rest frame.
+Numba loop, :func:`push_rest` / :func:`sample` take a bone index, a rest-frame point and the
+packed fields as a :data:`FieldGrid` (``fields.grid()``), and :func:`to_rest` maps a posed point
+to bone b's rest frame.
 """
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +54,16 @@ PUSH_STEPS = 32
 """Newton steps per point and bone at most in :func:`push_out_of_bones`."""
 PUSH_SWEEPS = 4
 """Passes over the bones per point at most (a push out of one bone may lead into another)."""
+
+# collections.namedtuple, not typing.NamedTuple: Numba 0.56 crashes building the latter in a
+# kernel (solid_contacts_range builds a grid from its flat state).
+FieldGrid = namedtuple("FieldGrid", ("origin", "spacing", "dims", "coarse_start", "coarse",
+                                     "index_start", "brick_index", "bricks"))
+FieldGrid.__doc__ = """The packed fields of b bones as the lookup kernels read them (the arrays
+of :class:`BoneFieldSet`, which see): ``origin`` (b, 3) mm, ``spacing`` (b,) mm, ``dims`` (b, 3)
+bricks, ``coarse_start`` (b,), ``coarse`` float32 mm, ``index_start`` (b,), ``brick_index``
+int32, ``bricks`` (k, (BRICK + 1)^3) float32 mm. Kernels only read it: a parallel loop's
+outputs are plain array arguments (Numba's parallel loops lost writes through tuples)."""
 
 
 @dataclass(frozen=True)
@@ -129,10 +141,10 @@ class BoneFieldSet:
     def __len__(self):
         return len(self.names)
 
-    def arrays(self):
-        """The packed arrays in the order the kernels take them."""
-        return (self.origin, self.spacing, self.dims, self.coarse_start, self.coarse,
-                self.index_start, self.brick_index, self.bricks)
+    def grid(self) -> FieldGrid:
+        """The packed arrays as the kernels take them."""
+        return FieldGrid(self.origin, self.spacing, self.dims, self.coarse_start, self.coarse,
+                         self.index_start, self.brick_index, self.bricks)
 
 
 @dataclass
@@ -173,12 +185,12 @@ class BoneSolids:
         return float(0.5 * np.linalg.norm(boxes, axis=1).max() + np.max(self.clearance))
 
     def kernel_arguments(self) -> tuple:
-        """``(transforms, clearance, push tolerance mm, *fields.arrays())`` for the kernels;
-        :data:`NO_SOLIDS` has the same types and no bone."""
+        """``(transforms, clearance, push tolerance mm)`` for the kernels, which take the
+        fields as ``fields.grid()`` beside them; :data:`NO_SOLIDS` has the same types and no
+        bone."""
         tolerance = 1e-3 * float(self.fields.spacing.min()) if len(self.fields) else 0.0
-        return ((np.ascontiguousarray(self.transforms, dtype=np.float64),
-                 np.ascontiguousarray(self.clearance, dtype=np.float64), tolerance)
-                + self.fields.arrays())
+        return (np.ascontiguousarray(self.transforms, dtype=np.float64),
+                np.ascontiguousarray(self.clearance, dtype=np.float64), tolerance)
 
 
 # ---- lookup ----------------------------------------------------------------------------------
@@ -211,23 +223,23 @@ def _trilinear(values, base, sx, sy, fx, fy, fz):
 
 
 @njit(cache=True)
-def _sample_inside_box(b, ux, uy, uz, spacing, dims, coarse_start, coarse, index_start,
-                       brick_index, bricks):
+def _sample_inside_box(b, ux, uy, uz, grid):
     """Value and rest-frame gradient at (ux, uy, uz), in fine cells from the box's origin
     (inside the box)."""
+    dims = grid.dims
     nx, ny, nz = dims[b, 0], dims[b, 1], dims[b, 2]
     bi = min(int(ux / BRICK), nx - 1)
     bj = min(int(uy / BRICK), ny - 1)
     bk = min(int(uz / BRICK), nz - 1)
-    block = brick_index[index_start[b] + (bi * ny + bj) * nz + bk]
-    h = spacing[b]
+    block = grid.brick_index[grid.index_start[b] + (bi * ny + bj) * nz + bk]
+    h = grid.spacing[b]
     if block >= 0:
         lx, ly, lz = ux - bi * BRICK, uy - bj * BRICK, uz - bk * BRICK
         i = min(int(lx), BRICK - 1)
         j = min(int(ly), BRICK - 1)
         k = min(int(lz), BRICK - 1)
         n = BRICK + 1
-        value, dx, dy, dz = _trilinear(bricks[block], (i * n + j) * n + k, n * n, n,
+        value, dx, dy, dz = _trilinear(grid.bricks[block], (i * n + j) * n + k, n * n, n,
                                        lx - i, ly - j, lz - k)
         return value, dx / h, dy / h, dz / h
     per = BRICK // COARSE
@@ -237,17 +249,18 @@ def _sample_inside_box(b, ux, uy, uz, spacing, dims, coarse_start, coarse, index
     k = min(int(cz), nz * per - 1)
     sy = nz * per + 1
     sx = (ny * per + 1) * sy
-    value, dx, dy, dz = _trilinear(coarse, coarse_start[b] + i * sx + j * sy + k, sx, sy,
-                                   cx - i, cy - j, cz - k)
+    value, dx, dy, dz = _trilinear(grid.coarse, grid.coarse_start[b] + i * sx + j * sy + k,
+                                   sx, sy, cx - i, cy - j, cz - k)
     size = COARSE * h
     return value, dx / size, dy / size, dz / size
 
 
 @njit(cache=True)
-def sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse, index_start,
-            brick_index, bricks):
-    """Signed distance (mm) and its gradient at rest-frame point q of bone b."""
-    h = spacing[b]
+def sample(b, qx, qy, qz, grid):
+    """Signed distance (mm) and its gradient at rest-frame point q of bone b of ``grid``
+    (:data:`FieldGrid`)."""
+    origin, dims = grid.origin, grid.dims
+    h = grid.spacing[b]
     ux = (qx - origin[b, 0]) / h
     uy = (qy - origin[b, 1]) / h
     uz = (qz - origin[b, 2]) / h
@@ -257,8 +270,7 @@ def sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse, index_sta
     cx = min(max(ux, 0.0), float(mx))
     cy = min(max(uy, 0.0), float(my))
     cz = min(max(uz, 0.0), float(mz))
-    value, gx, gy, gz = _sample_inside_box(b, cx, cy, cz, spacing, dims, coarse_start, coarse,
-                                           index_start, brick_index, bricks)
+    value, gx, gy, gz = _sample_inside_box(b, cx, cy, cz, grid)
     ox, oy, oz = (ux - cx) * h, (uy - cy) * h, (uz - cz) * h
     away = math.sqrt(ox * ox + oy * oy + oz * oz)
     if away > 0.0:
@@ -277,13 +289,11 @@ def to_rest(transforms, b, x, y, z):
 
 
 @njit(parallel=True, cache=True)
-def _signed_distances(points, transforms, origin, spacing, dims, coarse_start, coarse,
-                      index_start, brick_index, bricks, distance, gradient):
+def _signed_distances(points, transforms, grid, distance, gradient):
     for p in prange(points.shape[0]):
         for b in range(transforms.shape[0]):
             qx, qy, qz = to_rest(transforms, b, points[p, 0], points[p, 1], points[p, 2])
-            value, gx, gy, gz = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start,
-                                        coarse, index_start, brick_index, bricks)
+            value, gx, gy, gz = sample(b, qx, qy, qz, grid)
             distance[p, b] = value
             m = transforms[b]
             for axis in range(3):
@@ -314,36 +324,34 @@ def signed_distances(fields: BoneFieldSet, points, transforms=None):
     distance = np.empty((len(points), len(fields)))
     gradient = np.empty((len(points), len(fields), 3))
     if len(points) and len(fields):
-        _signed_distances(points, transforms, *fields.arrays(), distance, gradient)
+        _signed_distances(points, transforms, fields.grid(), distance, gradient)
     return distance, gradient
 
 
 # ---- pushing points out ----------------------------------------------------------------------
 
 @njit(cache=True)
-def push_rest(b, qx, qy, qz, radius, tolerance, origin, spacing, dims, coarse_start, coarse,
-               index_start, brick_index, bricks):
-    """Move rest-frame point q of bone b along the distance gradient until its distance is at
-    least ``radius - tolerance``; returns the new q and whether it moved."""
+def push_rest(b, qx, qy, qz, radius, tolerance, grid):
+    """Move rest-frame point q of bone b of ``grid`` (:data:`FieldGrid`) along the distance
+    gradient until its distance is at least ``radius - tolerance``; returns the new q and
+    whether it moved."""
     moved = False
     for _ in range(PUSH_STEPS):
-        value, gx, gy, gz = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
-                                    index_start, brick_index, bricks)
+        value, gx, gy, gz = sample(b, qx, qy, qz, grid)
         if value >= radius - tolerance:
             break
         norm = math.sqrt(gx * gx + gy * gy + gz * gz)
         if norm < 1e-9:
             # A point on a ridge of the field (e.g. a box's centre): the gradient cancels; go
             # the way, of the six axis directions one node away, the distance grows most.
-            h = spacing[b]
+            h = grid.spacing[b]
             best = -np.inf
             for axis in range(6):
                 sign = 1.0 if axis < 3 else -1.0
                 ex = sign * h if axis % 3 == 0 else 0.0
                 ey = sign * h if axis % 3 == 1 else 0.0
                 ez = sign * h if axis % 3 == 2 else 0.0
-                trial = sample(b, qx + ex, qy + ey, qz + ez, origin, spacing, dims,
-                                coarse_start, coarse, index_start, brick_index, bricks)[0]
+                trial = sample(b, qx + ex, qy + ey, qz + ez, grid)[0]
                 if trial > best:
                     best, gx, gy, gz = trial, ex / h, ey / h, ez / h
             norm = 1.0
@@ -356,8 +364,7 @@ def push_rest(b, qx, qy, qz, radius, tolerance, origin, spacing, dims, coarse_st
 
 
 @njit(parallel=True, cache=True)
-def _push_out_of_bones(points, radii, active, transforms, tolerance, origin, spacing, dims,
-                       coarse_start, coarse, index_start, brick_index, bricks, displacement):
+def _push_out_of_bones(points, radii, active, transforms, tolerance, grid, displacement):
     for p in prange(points.shape[0]):
         x, y, z = points[p, 0], points[p, 1], points[p, 2]
         for _ in range(PUSH_SWEEPS):
@@ -366,9 +373,7 @@ def _push_out_of_bones(points, radii, active, transforms, tolerance, origin, spa
                 if active[p, b] == 0:
                     continue
                 qx, qy, qz = to_rest(transforms, b, x, y, z)
-                qx, qy, qz, moved = push_rest(b, qx, qy, qz, radii[p], tolerance, origin,
-                                               spacing, dims, coarse_start, coarse, index_start,
-                                               brick_index, bricks)
+                qx, qy, qz, moved = push_rest(b, qx, qy, qz, radii[p], tolerance, grid)
                 if moved:
                     m = transforms[b]
                     x = m[0, 0] * qx + m[0, 1] * qy + m[0, 2] * qz + m[0, 3]
@@ -436,7 +441,7 @@ def push_out_of_bones(fields: BoneFieldSet, points, radii=None, transforms=None,
         tolerance = 1e-3 * float(fields.spacing.min()) if b else 0.0
     displacement = np.zeros((n, 3))
     if n and b:
-        _push_out_of_bones(points, radii, mask, transforms, float(tolerance), *fields.arrays(),
+        _push_out_of_bones(points, radii, mask, transforms, float(tolerance), fields.grid(),
                            displacement)
     return displacement
 

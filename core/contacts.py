@@ -71,12 +71,13 @@ room: ``muscle`` the muscle-muscle lists (:func:`~muscle_mss.core.sphere_lists.m
 and each muscle sphere's own list of bone spheres ``mb_idx[mb_begin[i]:mb_end[i]]`` in its
 ``room`` slots."""
 
-Contacts = namedtuple("Contacts", ("spheres", "hashed", "bone_table", "bvh", "solids"))
+Contacts = namedtuple("Contacts", ("spheres", "hashed", "bone_table", "bvh", "solids", "grid"))
 Contacts.__doc__ = """Everything the contact kernels read and write in one solve:
 :class:`SphereState`, :class:`HashState`, the bone spheres' grid (built once:
 :func:`~muscle_mss.core.spatial_hash.grid_table`), the octree BVH
 (:class:`~muscle_mss.core.octree_bvh.OctreeBVH`) and the solid contacts
-(:class:`~muscle_mss.core.solid_contacts.SolidState`). Its parts go to parallel kernels one by
+(:class:`~muscle_mss.core.solid_contacts.SolidState`) with the bones' fields ``grid``
+(:func:`~muscle_mss.core.solid_contacts.solid_grid`). Its parts go to parallel kernels one by
 one: Numba cannot hand a tuple nested in a tuple to a parallel loop."""
 
 ContactOptions = namedtuple("ContactOptions", ("use_bvh", "muscle_muscle", "muscle_bone"))
@@ -314,7 +315,7 @@ def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, so
     while done < passes:
         _gather_all(x, spheres.particle, spheres.centres, spheres.disp, spheres.collided)
         if options.muscle_bone and solids.transforms.shape[0] > 0:
-            solid_contacts(solids, box)
+            solid_contacts(solids, contacts.grid, box)
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = collide(
             contacts, options, lists)
         done += 1

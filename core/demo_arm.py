@@ -40,10 +40,9 @@ from functools import partial
 
 import numpy as np
 
-from .demo_geometry import (MuscleSpec, Size, around, build_muscle, ellipsoid, frame,
-                            make_envelopes, rotation_about, round_cone, smooth_union, sphere, v)
-from .implicit_meshing import SampledField, mesh_sampled, project_to_surface
-from .errors import MuscleMSSError
+from .demo_geometry import (MuscleSpec, Size, around, assemble_scene, ellipsoid, frame,
+                            rotation_about, round_cone, size_named, smooth_union, sphere, v)
+from .implicit_meshing import SampledField, project_to_surface
 from .scene import Motion, Scene
 
 SHOULDER_CENTRE = v(0.0, 0.0, 0.0)
@@ -316,16 +315,7 @@ def demo_arm_scene(size: str = "full") -> Scene:
     coarser, with a 4x4 grid of 12-vertex fibres, for fast tests.
     Every call returns an identical, newly built scene.
     """
-    if size not in _SIZES:
-        raise MuscleMSSError(f"demo scene size '{size}' is unknown; choose one of: "
-                             f"{', '.join(_SIZES)}")
-    sizes = _SIZES[size]
-    scene = Scene(motion=flexion_motion())
+    sizes = size_named(size, _SIZES)
     bones = {bone: sampled_bone(bone, sizes.bone_spacing) for bone in BONE_NAMES}
-    for bone, sampled in bones.items():
-        scene.bones[bone] = mesh_sampled(sampled)
-    envelopes = make_envelopes(_MUSCLES, MUSCLE_NAMES, project_to_bone, _arm_axis)
-    for name in MUSCLE_NAMES:
-        scene.muscles[name], scene.fibres[name] = build_muscle(name, _MUSCLES[name], envelopes,
-                                                               bones, sizes)
-    return scene
+    return assemble_scene(flexion_motion(), bones, _MUSCLES, MUSCLE_NAMES, project_to_bone,
+                          _arm_axis, sizes)

@@ -25,7 +25,8 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from .errors import MuscleMSSError
-from .scene import FibreSet, Surface
+from .implicit_meshing import mesh_sampled
+from .scene import FibreSet, Scene, Surface
 
 
 @dataclass(frozen=True)
@@ -354,3 +355,25 @@ def make_envelopes(specs, names, project, axis):
         insertion = project(spec.insertion_bone, spec.insertion)
         envelopes[name] = Envelope(origin, insertion, spec.waypoints, spec, axis)
     return envelopes
+
+
+def size_named(size: str, sizes: dict) -> Size:
+    """The :class:`Size` called ``size`` among ``sizes`` (name -> Size)."""
+    if size not in sizes:
+        raise MuscleMSSError(f"demo scene size '{size}' is unknown; choose one of: "
+                             f"{', '.join(sizes)}")
+    return sizes[size]
+
+
+def assemble_scene(motion, bones, specs, names, project, axis, size) -> Scene:
+    """A demo scene of ``motion``, the ``bones`` (name -> :class:`.implicit_meshing.SampledField`)
+    meshed, and the muscles ``names`` of ``specs`` built around them at :class:`Size` ``size``
+    (:func:`make_envelopes` with ``project`` and ``axis``, :func:`build_muscle`)."""
+    scene = Scene(motion=motion)
+    for bone, sampled in bones.items():
+        scene.bones[bone] = mesh_sampled(sampled)
+    envelopes = make_envelopes(specs, names, project, axis)
+    for name in names:
+        scene.muscles[name], scene.fibres[name] = build_muscle(name, specs[name], envelopes,
+                                                               bones, size)
+    return scene

@@ -24,13 +24,12 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from .demo_geometry import (MuscleSpec as _MuscleSpec, Size as _Size,  # noqa: F401
-                            around, build_muscle, compose as _compose, ellipsoid as _ellipsoid,
-                            frame as _frame, make_envelopes, rotation_about,
-                            round_cone as _round_cone, smooth_union as _blend, sphere as _sphere,
-                            v as _v)
+                            around, assemble_scene, compose as _compose,
+                            ellipsoid as _ellipsoid, frame as _frame, rotation_about,
+                            round_cone as _round_cone, size_named, smooth_union as _blend,
+                            sphere as _sphere, v as _v)
 from .implicit_meshing import (SampledField, mesh_implicit, mesh_sampled,  # noqa: F401
                                project_to_surface)
-from .errors import MuscleMSSError
 from .scene import Motion, Scene, Surface
 
 HIP_CENTRE = np.array([0.0, 0.0, 0.0])
@@ -316,17 +315,8 @@ def demo_scene(size: str = "full") -> Scene:
     :data:`SMALL_MUSCLE_NAMES` and a 4x4 grid of 12-vertex fibres, for fast tests.
     Every call returns an identical, newly built scene.
     """
-    if size not in _SIZES:
-        raise MuscleMSSError(f"demo scene size '{size}' is unknown; choose one of: "
-                             f"{', '.join(_SIZES)}")
-    sizes = _SIZES[size]
+    sizes = size_named(size, _SIZES)
     names = MUSCLE_NAMES if size == "full" else SMALL_MUSCLE_NAMES
-    scene = Scene(motion=gait_motion())
     bones = {bone: sampled_bone(bone, sizes.bone_spacing) for bone in BONE_NAMES}
-    for bone, sampled in bones.items():
-        scene.bones[bone] = mesh_sampled(sampled)
-    envelopes = make_envelopes(_MUSCLES, names, project_to_bone, _thigh_axis)
-    for name in names:
-        scene.muscles[name], scene.fibres[name] = build_muscle(name, _MUSCLES[name], envelopes,
-                                                               bones, sizes)
-    return scene
+    return assemble_scene(gait_motion(), bones, _MUSCLES, names, project_to_bone,
+                          _thigh_axis, sizes)

@@ -42,10 +42,10 @@ def boundary_from_grid(grid, fibre_id, fibre_index) -> np.ndarray:
 
     Parameters
     ----------
-    grid : (P, 2) int
-        ``fibre_grid`` (row, col) of each particle's fibre.
-    fibre_id, fibre_index : (P,) int
-        The particle's fibre and its place along it (0 = origin).
+    grid, fibre_id, fibre_index : (P, 2) int, (P,) int, (P,) int
+        Each particle's fibre's place in ``fibre_grid``, its fibre and its place along it, as
+        :func:`~muscle_mss.core.springs.lattice_places` takes them (the grid need not be a
+        full rectangle here).
     """
     grid = np.asarray(grid, dtype=np.int64).reshape(-1, 2)
     fibre_id = np.asarray(fibre_id, dtype=np.int64).ravel()

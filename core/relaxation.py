@@ -61,7 +61,7 @@ from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, pr
 from .mss import mss_state, muscle_step
 from .settings import (STRUCTURE_HASH, STRUCTURES, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
                        TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
-from .solid_contacts import respond_solids, solid_contacts_range, solid_state
+from .solid_contacts import respond_solids, solid_contacts_range, solid_grid, solid_state
 
 CHUNK_SECONDS = 0.1
 
@@ -84,12 +84,12 @@ termination in :data:`~muscle_mss.core.settings.TERMINATIONS`, its ``threshold``
 
 @njit(cache=True, parallel=True)
 def _step_and_gather(mss, particle, centres, disp, collided, sphere_ptr, box, escaped, solids,
-                     use_solids):
+                     grid, use_solids):
     """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step` of ``mss``), each
     muscle's sphere centres then gathered for the collision tests (the arrays of
     :class:`~muscle_mss.core.contacts.SphereState`) and, with ``use_solids``, its particles
-    tested against the bones as solids
-    (:func:`~muscle_mss.core.solid_contacts.solid_contacts_range`; not timed apart: a clock in a
+    tested against the bones as solids (``solids`` and their fields ``grid``,
+    :func:`~muscle_mss.core.solid_contacts.solid_contacts_range`; not timed apart: a clock in a
     parallel region takes the GIL) — one parallel region: every region costs a thread wake-up
     (~0.1 ms on a virtual machine), which is a large part of one iteration at N = 80.
     ``escaped[m]`` is set when a sphere centre or a particle tested against the solids of
@@ -103,7 +103,7 @@ def _step_and_gather(mss, particle, centres, disp, collided, sphere_ptr, box, es
             for axis in range(3):
                 inside &= (centres[axis, s] >= box[0, axis]) & (centres[axis, s] <= box[1, axis])
         if use_solids:
-            inside &= solid_contacts_range(solid_ptr[m], solid_ptr[m + 1], solids, box)
+            inside &= solid_contacts_range(solid_ptr[m], solid_ptr[m + 1], solids, grid, box)
         escaped[m] = not inside
 
 
@@ -151,7 +151,8 @@ def _solve_chunk(mss, contacts, options, history, control, first, last, started,
     while it < last and status == RUNNING:
         t0 = now()
         _step_and_gather(mss, spheres.particle, spheres.centres, spheres.disp, spheres.collided,
-                         spheres.sphere_ptr, box, escaped, solids, muscle_bone and use_solids)
+                         spheres.sphere_ptr, box, escaped, solids, contacts.grid,
+                         muscle_bone and use_solids)
         t1 = now()
         bad = _first_set(escaped)
         if bad >= 0:
@@ -294,7 +295,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     hashed, bone_table, lists = hash_state(spheres, settings.structure == STRUCTURE_HASH)
     contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings),
-                        solid_state(bone_solids, x, prep))
+                        solid_state(bone_solids, x, prep), solid_grid(bone_solids))
     reach = (2.0 * (max(spheres.radius, default=0.0) + max(spheres.bone_radius, default=0.0))
              + (bone_solids.reach if bone_solids is not None else 0.0))
     control = RelaxationControl(

@@ -15,7 +15,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from .bone_distance import BRICK, NO_SOLIDS, BoneSolids, push_rest, sample, to_rest
+from .bone_distance import BRICK, NO_SOLIDS, BoneSolids, FieldGrid, push_rest, sample, to_rest
 from .model import PreparedModel
 
 # A particle whose distance to every solid bone exceeds its reach by a slack plus its move since
@@ -30,20 +30,22 @@ SOLID_LIPSCHITZ = np.sqrt(3.0)
 SOLID_SLACK_CELLS = 1.0         # fine cells: the slack in mm is this times the field's spacing
 
 SolidState = namedtuple("SolidState", (
-    "transforms", "clearance", "tolerance", "origin", "spacing", "dims", "coarse_start",
-    "coarse", "index_start", "brick_index", "bricks", "x", "points", "radius", "anchor",
-    "margin", "slack", "disp", "collided", "count", "pen", "ptr"))
-SolidState.__doc__ = """The solid contacts' state for one solve (flat: it goes to parallel
-loops).
+    "transforms", "clearance", "tolerance", "x", "points", "radius", "anchor", "margin", "slack",
+    "disp", "collided", "count", "pen", "ptr"))
+SolidState.__doc__ = """The solid contacts' state for one solve, beside the bones' packed
+fields (:data:`~muscle_mss.core.bone_distance.FieldGrid`, :func:`solid_grid`). Flat, and apart
+from the grid: it goes to parallel loops, and Numba cannot hand them a tuple nested in a tuple,
+nor (Numba 0.56) a named tuple of 16 fields or more ("CALL_FUNCTION_EX with **kwargs not
+supported").
 
 The bones (:meth:`~muscle_mss.core.bone_distance.BoneSolids.kernel_arguments`: ``transforms``
-(b, 3, 4) field frame to posed, ``clearance`` (b,) mm, the push ``tolerance`` mm and the packed
-fields ``origin`` ... ``bricks``); the positions ``x`` (3, n) mm they read; the particles
-``points`` (k,) of :func:`solid_points` with their sphere radii ``radius`` (k,) mm (0: none);
-the skip state of :func:`solid_contacts_range` (``anchor`` (3, k) each particle's position when
-last sampled and ``margin`` (k,) its least clearance of the bones then, mm; ``slack`` mm); the
-contact state (``disp`` (3, k) mm, ``collided`` (k,), ``count`` (k,) contacts, ``pen`` (k,) mm
-the deepest) and each muscle's first particle among them ``ptr`` (M + 1,)."""
+(b, 3, 4) field frame to posed, ``clearance`` (b,) mm and the push ``tolerance`` mm); the
+positions ``x`` (3, n) mm they read; the particles ``points`` (k,) of :func:`solid_points` with
+their sphere radii ``radius`` (k,) mm (0: none); the skip state of :func:`solid_contacts_range`
+(``anchor`` (3, k) each particle's position when last sampled and ``margin`` (k,) its least
+clearance of the bones then, mm; ``slack`` mm); the contact state (``disp`` (3, k) mm, ``collided``
+(k,), ``count`` (k,) contacts, ``pen`` (k,) mm the deepest) and each muscle's first particle among
+them ``ptr`` (M + 1,)."""
 
 
 def solid_points(prep: PreparedModel) -> np.ndarray:
@@ -56,6 +58,11 @@ def solid_points(prep: PreparedModel) -> np.ndarray:
     else:
         keep = ~prep.in_bone_at_rest
     return np.flatnonzero(keep & ~prep.fixed).astype(np.int64)
+
+
+def solid_grid(bone_solids: BoneSolids | None) -> FieldGrid:
+    """The packed fields of ``bone_solids`` (None: no bone) as the kernels take them."""
+    return (bone_solids if bone_solids is not None else NO_SOLIDS).fields.grid()
 
 
 def solid_state(bone_solids: BoneSolids | None, x: np.ndarray,
@@ -77,9 +84,10 @@ def solid_state(bone_solids: BoneSolids | None, x: np.ndarray,
 
 
 @njit(cache=True)
-def solid_contacts_range(first, last, solids, box):
+def solid_contacts_range(first, last, solids, grid, box):
     """Particles ``first..last-1`` of ``solids`` (:class:`SolidState`: every free particle
-    not inside a bone at rest, each with its sphere's radius or 0) against the bones as solids:
+    not inside a bone at rest, each with its sphere's radius or 0) against the bones as solids
+    (their fields ``grid``, :func:`solid_grid`):
     a particle closer to bone b's surface than its radius plus the bone's clearance, or inside
     the bone, gets the displacement that takes it out to that distance along the distance
     gradient (the whole penetration, as against a bone sphere, from whatever depth) in the
@@ -89,9 +97,9 @@ def solid_contacts_range(first, last, solids, box):
     by a margin is skipped (:data:`SOLID_LIPSCHITZ`); one outside ``box`` (2, 3) mm or not
     finite is left alone, and the return value is then False (diverged). One muscle's particles
     per call: a call passes the whole state, too dear per particle."""
-    (transforms, clearance, tolerance, origin, spacing, dims, coarse_start, coarse, index_start,
-     brick_index, bricks, x, points, radius, anchor, margin, slack, disp, collided, count,
-     pen, _) = solids
+    (transforms, clearance, tolerance, x, points, radius, anchor, margin, slack, disp, collided,
+     count, pen, _) = solids
+    origin, spacing, dims = grid.origin, grid.spacing, grid.dims
     inside = True
     for k in range(first, last):
         count[k] = 0
@@ -121,14 +129,12 @@ def solid_contacts_range(first, last, solids, box):
             if away > 0.0 and away >= reach:
                 clear = min(clear, away - reach)
                 continue
-            value = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
-                            index_start, brick_index, bricks)[0]
+            value = sample(b, qx, qy, qz, grid)[0]
             if value >= reach - tolerance:
                 clear = min(clear, value - reach)
                 continue
             clear = -np.inf
-            px, py, pz, _ = push_rest(b, qx, qy, qz, reach, tolerance, origin, spacing, dims,
-                                       coarse_start, coarse, index_start, brick_index, bricks)
+            px, py, pz, _ = push_rest(b, qx, qy, qz, reach, tolerance, grid)
             m = transforms[b]
             dx, dy, dz = px - qx, py - qy, pz - qz
             for axis in range(3):
@@ -142,13 +148,13 @@ def solid_contacts_range(first, last, solids, box):
 
 
 @njit(cache=True, parallel=True)
-def solid_contacts(solids, box):
+def solid_contacts(solids, grid, box):
     """:func:`solid_contacts_range` for every particle of ``solids``, muscle by muscle in parallel
     (the final passes; the relaxation's iterations run it inside their step's region, where
     there is no thread wake-up to pay)."""
     ptr = solids.ptr
     for m in prange(ptr.shape[0] - 1):
-        solid_contacts_range(ptr[m], ptr[m + 1], solids, box)
+        solid_contacts_range(ptr[m], ptr[m + 1], solids, grid, box)
 
 
 @njit(cache=True)

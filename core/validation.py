@@ -63,7 +63,17 @@ def fibre_problems(muscle: str, fibres, where: str = FIBRES_FILE) -> list:
 def placement_problems(scene: Scene) -> list:
     """Rules of a plausible scene in millimetres (see :data:`MIN_MUSCLE_SIZE` and below): sizes
     and distances, fibres inside their muscle, muscles outside the bones at rest. Run on a scene
-    whose surfaces and fibres passed their own rules."""
+    whose surfaces and fibres passed their own rules. The rules are tried in turn and the first
+    that finds problems gives them: a scene far away or in metres would break the later ones
+    for that reason alone."""
+    for rule in (_far_from_origin, _too_small, _misplaced):
+        problems = rule(scene)
+        if problems:
+            return problems
+    return []
+
+
+def _far_from_origin(scene: Scene) -> list:
     problems = []
     for file, surfaces in ((MUSCLES_FILE, scene.muscles), (BONES_FILE, scene.bones)):
         for name, surface in surfaces.items():
@@ -73,17 +83,20 @@ def placement_problems(scene: Scene) -> list:
                     f"{file} block '{name}': a vertex lies {far:.3g} mm from the origin; a scene "
                     f"farther than {MAX_DISTANCE:g} mm (10 m) from its origin is implausible "
                     "(lengths are in millimetres); move the scene near the origin")
-    if problems:
-        return problems
-    for name, surface in scene.muscles.items():
-        size = float(np.linalg.norm(surface.points.max(axis=0) - surface.points.min(axis=0)))
-        if size < MIN_MUSCLE_SIZE:
-            problems.append(
-                f"{MUSCLES_FILE} block '{name}': the muscle is {size:.3g} mm across; lengths "
-                f"are in millimetres and a muscle smaller than {MIN_MUSCLE_SIZE:g} mm is "
-                "implausible (is the scene in metres? scale it by 1000)")
-    if problems:
-        return problems
+    return problems
+
+
+def _too_small(scene: Scene) -> list:
+    sizes = {name: float(np.linalg.norm(surface.points.max(axis=0) - surface.points.min(axis=0)))
+             for name, surface in scene.muscles.items()}
+    return [f"{MUSCLES_FILE} block '{name}': the muscle is {size:.3g} mm across; lengths are in "
+            f"millimetres and a muscle smaller than {MIN_MUSCLE_SIZE:g} mm is implausible (is "
+            "the scene in metres? scale it by 1000)"
+            for name, size in sizes.items() if size < MIN_MUSCLE_SIZE]
+
+
+def _misplaced(scene: Scene) -> list:
+    problems = []
     for name, surface in scene.muscles.items():
         fibres = scene.fibres.get(name)
         if fibres is not None and fibres.count:

@@ -168,8 +168,7 @@ def test_iteration_cap_times_ten_gives_the_same_particles_once_converged(stretch
     assert np.array_equal(a.positions, b.positions)
     # a tenth of the tolerance: the residual (the L-BFGS step) estimates the distance left
     # roughly (7e-3 mm measured here at 1e-3), far below the 0.5 mm the posed state is away
-    settings.quasi_static.tolerance = 1e-4
-    c = Q.solve(stretched, settings=settings)
+    c = Q.solve(stretched, settings=quasi_static(tolerance=1e-4, iterations=4000))
     assert c.converged and c.iterations > a.iterations
     assert np.linalg.norm(a.positions - c.positions, axis=1).max() < 20 * 1e-3
 
@@ -350,7 +349,7 @@ def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(mo
     def everything_near(*arguments):
         arguments[-1][:] = True
 
-    monkeypatch.setattr(Q, "_near_solids", everything_near)
+    monkeypatch.setattr(Q.energy, "near_solids", everything_near)
     full = Q.solve(model, settings=settings, bone_solids=solids)
     np.testing.assert_array_equal(listed.positions, full.positions)
     np.testing.assert_array_equal(listed.residual, full.residual)

@@ -16,7 +16,7 @@ from ..errors import MuscleMSSError
 from ..model import MSSModel, PreparedModel, SolveResult, check_history_size, prepare
 from ..settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, STRUCTURES, TERMINATION_BUDGET,
                         TERMINATION_ITERATIONS, SolverSettings)
-from ..solid_contacts import solid_state
+from ..solid_contacts import solid_grid, solid_state
 from .energy import ContactEnergy
 from .lbfgs import LBFGSHistory, direction, largest_move, settled
 from .preconditioner import InitialInverseHessian, preconditioner
@@ -51,6 +51,14 @@ IterationRecord.__doc__ = """One row per iteration: ``residual`` (K,) mm the lar
 move of the quasi-Newton step, ``energy`` (K,) g mm^2/s^2 at its start, ``mean_move`` (K, M) mm
 each muscle's mean particle move, ``muscle_pairs``, ``bone_pairs`` (K,) and
 ``max_penetration`` (K,) mm the overlaps at its start, ``seconds`` (K,) cumulative."""
+
+
+LoopOutcome = namedtuple("LoopOutcome", (
+    "record", "iterations", "stopped_by", "converged", "solve_seconds", "position"))
+LoopOutcome.__doc__ = """How the minimisation ended: its :class:`IterationRecord` ``record``,
+``iterations`` done, what ``stopped_by`` it, whether it ``converged`` (the tolerance met),
+``solve_seconds`` spent computing steps, and the last accepted free positions ``position``
+(f, 3) mm."""
 
 
 def _record(cap: int, n_muscles: int) -> IterationRecord:
@@ -133,17 +141,14 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
                               float(settings.quasi_static.contact_weight) * pre.stiffest,
                               bone_solids)
-    record, done, stopped_by, converged_loop, solve_seconds, position = _minimise(
-        prep, pre, settings, energy_of, spheres, progress)
-    x[:, pre.free] = position.T
-    return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, record,
-                   done, stopped_by, converged_loop, solve_seconds)
+    outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
+    x[:, pre.free] = outcome.position.T
+    return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, outcome)
 
 
 def _minimise(prep, pre, settings, energy_of, spheres, progress):
     """The L-BFGS iterations from the positions ``energy_of`` holds, until the tolerance, the
-    cap, the budget or a failed line search. Returns ``(record, iterations, stopped by,
-    converged, seconds in the direction, the last accepted free positions (f, 3) mm)``."""
+    cap, the budget or a failed line search (:class:`LoopOutcome`)."""
     tolerance = settings.quasi_static.tolerance
     budget = settings.budget
     free_muscle = prep.muscle[pre.free]
@@ -198,7 +203,7 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
             break
         if progress is not None and progress(done / cap):
             raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
-    return record, done, stopped_by, converged, solve_seconds, position
+    return LoopOutcome(record, done, stopped_by, converged, solve_seconds, position)
 
 
 def _step(gradient, history, h0, residual, done, tolerance):
@@ -249,10 +254,11 @@ def _line_search(energy_of, position, energy, step, slope, alpha):
     return None
 
 
-def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, record, done,
-            stopped_by, converged_loop, solve_seconds) -> QuasiStaticResult:
+def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids,
+            outcome: LoopOutcome) -> QuasiStaticResult:
     """The solids' push and the paper method's final collision passes (they remove the
-    penalty's overlap), then the :class:`QuasiStaticResult`."""
+    penalty's overlap) after the minimisation's ``outcome``, then the
+    :class:`QuasiStaticResult`."""
     touching = energy_of.deepest > 0.0
     touching_solid = energy_of.solid_deepest > 0.0
     if len(energy_of.solid_points):
@@ -260,7 +266,8 @@ def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, re
     use_bvh = settings.structure == STRUCTURE_BVH
     hashed, bone_table, lists = hash_state(spheres, not use_bvh)
     solids = solid_state(bone_solids, x, prep)
-    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings), solids)
+    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings), solids,
+                        solid_grid(bone_solids))
     solid_collided = np.zeros(len(solids.points), dtype=np.uint8)
     if len(energy_of.solid_points):     # the same particles, the same order
         solid_collided[:] = touching_solid
@@ -269,16 +276,18 @@ def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, re
     passes, left, projection_seconds = final_passes(
         x, v, contacts, settings, lists, collided_spheres, solid_collided,
         world_box(x.T, spheres.bone_centres.T))
-    phases = {"mss": float(energy_of.seconds[0] + solve_seconds),
+    phases = {"mss": float(energy_of.seconds[0] + outcome.solve_seconds),
               "muscle_cd": float(energy_of.seconds[1]), "bone_cd": float(energy_of.seconds[2]),
               "projection": projection_seconds}
+    record, done = outcome.record, outcome.iterations
     return QuasiStaticResult(
         **solved_state(prep, x, v, spheres, solids.points, collided_spheres, solid_collided),
         mean_displacement=record.mean_move[:done].copy(),
         muscle_pairs=record.muscle_pairs[:done].copy(),
         bone_pairs=record.bone_pairs[:done].copy(),
         max_penetration=record.max_penetration[:done].copy(),
-        seconds=record.seconds[:done].copy(), phase_seconds=phases, stopped_by=stopped_by,
-        rebuilds=energy_of.rebuilds, projection_passes=passes, remaining_penetration=left,
+        seconds=record.seconds[:done].copy(), phase_seconds=phases,
+        stopped_by=outcome.stopped_by, rebuilds=energy_of.rebuilds, projection_passes=passes,
+        remaining_penetration=left,
         residual=record.residual[:done].copy(), energy=record.energy[:done].copy(),
-        converged=converged_loop and left <= settings.penetration_tolerance)
+        converged=outcome.converged and left <= settings.penetration_tolerance)

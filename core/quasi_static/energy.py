@@ -121,14 +121,13 @@ def sphere_contact_energy(x, gradient, weight, particle, radius, fixed, mm_begin
 
 @njit(cache=True, parallel=True)
 def solid_contact_energy(x, gradient, weight, particle, radius, fixed, clearance, transforms,
-                    origin, spacing, dims, coarse_start, coarse, index_start, brick_index,
-                    bricks, sphere_energy, overlaps, deepest):
+                         grid, sphere_energy, overlaps, deepest):
     """The contact penalty of every free muscle sphere against the bones as solids: ``w / 2
     max(0, r_i + clearance_b - d_b(c_i))^2`` per bone ``b``, ``d_b`` its signed distance
-    (:mod:`muscle_mss.core.bone_distance`, sampled in the bone's rest frame, ``transforms``
-    (b, 3, 4) rest to posed), pushing along the distance gradient from whatever depth. Added
-    to ``gradient``, ``sphere_energy``, ``overlaps[:, 1]`` and ``deepest`` (after
-    :func:`sphere_contact_energy`)."""
+    (:mod:`muscle_mss.core.bone_distance`, ``grid`` the fields sampled in the bones' rest
+    frames, ``transforms`` (b, 3, 4) rest to posed), pushing along the distance gradient from
+    whatever depth. Added to ``gradient``, ``sphere_energy``, ``overlaps[:, 1]`` and
+    ``deepest`` (after :func:`sphere_contact_energy`)."""
     for i in prange(particle.shape[0]):
         if fixed[i]:
             continue
@@ -139,8 +138,7 @@ def solid_contact_energy(x, gradient, weight, particle, radius, fixed, clearance
         worst = deepest[i]
         for b in range(transforms.shape[0]):
             qx, qy, qz = to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
-            value, hx, hy, hz = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start,
-                                        coarse, index_start, brick_index, bricks)
+            value, hx, hy, hz = sample(b, qx, qy, qz, grid)
             pen = radius[i] + clearance[b] - value
             if pen > 0.0:
                 e += 0.5 * weight * pen * pen
@@ -159,17 +157,16 @@ def solid_contact_energy(x, gradient, weight, particle, radius, fixed, clearance
 
 
 @njit(cache=True, parallel=True)
-def near_solids(x, particle, radius, reach, transforms, origin, spacing, dims, coarse_start,
-                 coarse, index_start, brick_index, bricks, near):
+def near_solids(x, particle, radius, reach, transforms, grid, near):
     """``near[i]``: whether particle ``particle[i]`` lies within its ``radius[i]`` plus
-    ``reach[b]`` (mm) of some bone ``b`` as a solid (its sampled signed distance)."""
+    ``reach[b]`` (mm) of some bone ``b`` as a solid (its signed distance in ``grid``, posed by
+    ``transforms``)."""
     for i in prange(particle.shape[0]):
         p = particle[i]
         near[i] = False
         for b in range(transforms.shape[0]):
             qx, qy, qz = to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
-            value = sample(b, qx, qy, qz, origin, spacing, dims, coarse_start, coarse,
-                            index_start, brick_index, bricks)[0]
+            value = sample(b, qx, qy, qz, grid)[0]
             if value < radius[i] + reach[b]:
                 near[i] = True
                 break
@@ -265,7 +262,7 @@ class ContactEnergy:
         self.lists_built = True
         self.rebuilds += 1
 
-    def _refreshnear_solids(self):
+    def _refresh_near_solids(self):
         """Rebuild the list of solid points near a bone when one of them moved half the skin
         since (see ``solid_built``)."""
         if self.near is not None and not moved_more(self.x, self.solid_points,
@@ -274,8 +271,8 @@ class ContactEnergy:
         solids = self.solids
         self.solid_built[:] = self.x[:, self.solid_points]
         near_solids(self.x, self.solid_points, self.solid_radius,
-                     solids.clearance + self.skin, solids.transforms, *solids.fields.arrays(),
-                     self.solid_mask)
+                    solids.clearance + self.skin, solids.transforms, solids.fields.grid(),
+                    self.solid_mask)
         index = np.flatnonzero(self.solid_mask)
         k = len(index)
         self.near = (index, self.solid_points[index], self.solid_radius[index],
@@ -302,14 +299,14 @@ class ContactEnergy:
                       self.overlaps, self.deepest)
         if self.solids is not None and len(self.solid_points):
             solids = self.solids
-            self._refreshnear_solids()
+            self._refresh_near_solids()
             index, points, radius, fixed, energy, overlaps, deepest = self.near
             for array in (self.solid_energy, self.solid_overlaps, self.solid_deepest, energy,
                           overlaps, deepest):
                 array[:] = 0
             solid_contact_energy(self.x, self.gradient, self.weight, points, radius, fixed,
-                            solids.clearance, solids.transforms, *solids.fields.arrays(),
-                            energy, overlaps, deepest)
+                                 solids.clearance, solids.transforms, solids.fields.grid(),
+                                 energy, overlaps, deepest)
             self.solid_energy[index] = energy
             self.solid_overlaps[index] = overlaps
             self.solid_deepest[index] = deepest
