@@ -48,31 +48,17 @@ DENSE_FILL = 0.5
 NO_SPRING = -1.0   # rest length of a dense lane without a spring
 
 
-@dataclass
-class SpringLayout:
-    """Springs grouped for the force kernel (see the module docstring).
+SpringLayout = namedtuple("SpringLayout", (
+    "runs_int", "runs_param", "lane_rest", "run_ptr", "scattered_int", "scattered_param",
+    "scattered_ptr"))
+SpringLayout.__doc__ = """Springs grouped for the force kernel (see the module docstring).
 
-    ``runs_int`` (R, 4) int64: first particle ``a``, number of lanes, offset ``d``, first lane.
-    ``runs_param`` (R, 2) float64: stiffness (g/s^2) and damping (g/s) of the run.
-    ``lane_rest`` (lanes,) float64: rest length (mm) of lane ``i``'s spring, -1 for no spring.
-    ``scattered_int`` (Q, 2) int64 ends, ``scattered_param`` (Q, 3) rest length, stiffness,
-    damping of the springs in the scalar loop. ``run_ptr``, ``scattered_ptr`` (M+1,) int64: the
-    runs / scattered springs of muscle ``m`` are ``[ptr[m], ptr[m+1])``.
-    """
-
-    runs_int: np.ndarray
-    runs_param: np.ndarray
-    lane_rest: np.ndarray
-    run_ptr: np.ndarray
-    scattered_int: np.ndarray
-    scattered_param: np.ndarray
-    scattered_ptr: np.ndarray
-
-    @property
-    def arrays(self) -> tuple:
-        """The arrays in the order the kernels take them."""
-        return (self.runs_int, self.runs_param, self.lane_rest, self.run_ptr,
-                self.scattered_int, self.scattered_param, self.scattered_ptr)
+``runs_int`` (R, 4) int64: first particle ``a``, number of lanes, offset ``d``, first lane.
+``runs_param`` (R, 2) float64: stiffness (g/s^2) and damping (g/s) of the run.
+``lane_rest`` (lanes,) float64: rest length (mm) of lane ``i``'s spring, -1 for no spring.
+``scattered_int`` (Q, 2) int64 ends, ``scattered_param`` (Q, 3) rest length, stiffness,
+damping of the springs in the scalar loop. ``run_ptr``, ``scattered_ptr`` (M+1,) int64: the
+runs / scattered springs of muscle ``m`` are ``[ptr[m], ptr[m+1])``."""
 
 
 def lattice_order(fibre_id, fibre_index, fibre_grid=None) -> np.ndarray:
@@ -175,24 +161,25 @@ def no_cages(n_muscles: int) -> VolumeCages:
 
 MSSState = namedtuple("MSSState", (
     "x", "v", "x_prev", "force", "scratch", "inv_mass", "dt", "drag", "bulk_modulus", "cage_ptr",
-    "cage_triangles", "rest_volume", "offsets", "runs_int", "runs_param", "lane_rest", "run_ptr",
-    "scattered_int", "scattered_param", "scattered_ptr"))
-MSSState.__doc__ = """The mass-spring system's state and parameters for the step kernels (flat:
-it goes to parallel loops).
+    "cage_triangles", "rest_volume", "offsets"))
+MSSState.__doc__ = """The mass-spring system's state and parameters for the step kernels; the
+springs travel beside it (:class:`SpringLayout`). Both are flat and have fewer than 16 fields:
+they go to parallel loops, which take no nested tuple, and Numba 0.56 lowers no named tuple of
+16 fields or more there.
 
 ``x``, ``v`` (3, n) float64 mm, mm/s; ``x_prev`` (3, n) receives x before the step; ``force``,
 ``scratch`` (3, n) work arrays; ``inv_mass`` (n,) 1/g, 0 for fixed particles (so they never
 move); ``dt`` s; ``drag`` 1/s and ``bulk_modulus`` g/(mm s^2) as in :func:`mss_steps`;
 ``cage_ptr``, ``cage_triangles``, ``rest_volume`` the :class:`VolumeCages`; ``offsets`` (M+1,)
-the muscles' particle ranges; the rest the :class:`SpringLayout`."""
+the muscles' particle ranges."""
 
 
-def mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages: VolumeCages, offsets,
-              layout: SpringLayout) -> MSSState:
+def mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages: VolumeCages,
+              offsets) -> MSSState:
     """The :class:`MSSState` of positions and velocities ``x``, ``v`` (3, n), work space
     ``work`` (3, 3, n) (previous positions, forces, scratch) and the parameters."""
     return MSSState(x, v, work[0], work[1], work[2], inv_mass, float(dt), float(drag),
-                    float(bulk_modulus), *cages.arrays, offsets, *layout.arrays)
+                    float(bulk_modulus), *cages.arrays, offsets)
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
@@ -236,14 +223,16 @@ def _run_scatter(f0, f1, f2, t0, t1, t2, first, lanes, d):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _muscle_forces(m, state):
-    """Spring forces on the particles of muscle ``m`` into ``state.force`` (3, n)."""
+def _muscle_forces(m, state, springs):
+    """Spring forces (``springs``: :class:`SpringLayout`) on the particles of muscle ``m`` into
+    ``state.force`` (3, n)."""
     x, v, force, scratch, muscle_offsets = (state.x, state.v, state.force, state.scratch,
                                             state.offsets)
-    runs_int, runs_param, lane_rest, run_ptr = (state.runs_int, state.runs_param,
-                                                state.lane_rest, state.run_ptr)
-    scattered_int, scattered_param, scattered_ptr = (state.scattered_int, state.scattered_param,
-                                                     state.scattered_ptr)
+    runs_int, runs_param, lane_rest, run_ptr = (springs.runs_int, springs.runs_param,
+                                                springs.lane_rest, springs.run_ptr)
+    scattered_int, scattered_param, scattered_ptr = (springs.scattered_int,
+                                                     springs.scattered_param,
+                                                     springs.scattered_ptr)
     for axis in range(3):
         force[axis, muscle_offsets[m]:muscle_offsets[m + 1]] = 0.0
     x0, x1, x2 = x[0], x[1], x[2]
@@ -389,10 +378,11 @@ def _integrate(x, v, x_prev, force, inv_mass, first, stop, dt, keep):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def muscle_step(m, state):
-    """One semi-implicit Euler step of muscle ``m`` of ``state`` (:class:`MSSState`), in
-    place. Muscles are independent: callers run them as the tasks of one ``prange``."""
-    _muscle_forces(m, state)
+def muscle_step(m, state, springs):
+    """One semi-implicit Euler step of muscle ``m`` of ``state`` (:class:`MSSState`) with the
+    springs ``springs`` (:class:`SpringLayout`), in place. Muscles are independent: callers run
+    them as the tasks of one ``prange``."""
+    _muscle_forces(m, state, springs)
     # the spring kernels are done with scratch's entries of muscle m: the volume term reuses them
     _implicit_volume_forces(m, state)
     keep = 1.0 / (1.0 + state.dt * state.drag)
@@ -403,17 +393,17 @@ def muscle_step(m, state):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def mss_step(state):
-    """One semi-implicit Euler step of every muscle of ``state`` (:class:`MSSState`), in
-    place."""
+def mss_step(state, springs):
+    """One semi-implicit Euler step of every muscle of ``state`` (:class:`MSSState`) with the
+    springs ``springs`` (:class:`SpringLayout`), in place."""
     for m in prange(state.offsets.shape[0] - 1):
-        muscle_step(m, state)
+        muscle_step(m, state, springs)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def _forces_all(state):
+def _forces_all(state, springs):
     for m in prange(state.offsets.shape[0] - 1):
-        _muscle_forces(m, state)
+        _muscle_forces(m, state, springs)
 
 
 def _soa(points, n, what):
@@ -434,8 +424,8 @@ def spring_forces(positions, velocities, layout: SpringLayout, muscle_offsets) -
     v = _soa(velocities, n, "velocities")
     work = np.zeros((3, 3, n))
     state = mss_state(x, v, work, np.zeros(n), 0.0, 0.0, 0.0, no_cages(len(offsets) - 1),
-                      offsets, layout)
-    _forces_all(state)
+                      offsets)
+    _forces_all(state, layout)
     return state.force.T.copy()
 
 
@@ -460,7 +450,7 @@ def mss_steps(positions, velocities, masses, fixed, layout: SpringLayout, muscle
     v[:, inv_mass == 0.0] = 0.0
     work = np.zeros((3, 3, n))
     cages = cages if cages is not None else no_cages(len(offsets) - 1)
-    state = mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages, offsets, layout)
+    state = mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages, offsets)
     for _ in range(int(steps)):
-        mss_step(state)
+        mss_step(state, layout)
     return x.T.copy(), v.T.copy()

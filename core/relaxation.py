@@ -83,9 +83,10 @@ termination in :data:`~muscle_mss.core.settings.TERMINATIONS`, its ``threshold``
 
 
 @njit(cache=True, parallel=True)
-def _step_and_gather(mss, particle, centres, disp, collided, sphere_ptr, box, escaped, solids,
-                     grid, use_solids):
-    """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step` of ``mss``), each
+def _step_and_gather(mss, springs, particle, centres, disp, collided, sphere_ptr, box, escaped,
+                     solids, grid, use_solids):
+    """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step` of ``mss`` and
+    ``springs``), each
     muscle's sphere centres then gathered for the collision tests (the arrays of
     :class:`~muscle_mss.core.contacts.SphereState`) and, with ``use_solids``, its particles
     tested against the bones as solids (``solids`` and their fields ``grid``,
@@ -96,7 +97,7 @@ def _step_and_gather(mss, particle, centres, disp, collided, sphere_ptr, box, es
     muscle ``m`` lies outside ``box`` or is not finite."""
     x, offsets, solid_ptr = mss.x, mss.offsets, solids.ptr
     for m in prange(offsets.shape[0] - 1):
-        muscle_step(m, mss)
+        muscle_step(m, mss, springs)
         inside = True
         for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
             gather_sphere(s, x, particle, centres, disp, collided)
@@ -129,9 +130,11 @@ def _first_set(flags):
 
 
 @njit(cache=True)
-def _solve_chunk(mss, contacts, options, history, control, first, last, started, lists):
+def _solve_chunk(mss, springs, contacts, options, history, control, first, last, started,
+                 lists):
     """Iterations ``first`` up to ``last`` (fewer when a termination stops the loop): the MSS
-    step of ``mss`` (:class:`~muscle_mss.core.mss.MSSState`), the collisions of ``contacts``
+    step of ``mss`` (:class:`~muscle_mss.core.mss.MSSState`) with ``springs``
+    (:class:`~muscle_mss.core.mss.SpringLayout`), the collisions of ``contacts``
     (:func:`~muscle_mss.core.contacts.collide`), the response; each iteration's row of
     ``history`` (:class:`IterationHistory`), stopping as ``control``
     (:class:`RelaxationControl`) says. Returns ``(status, iterations done, diverged muscle or
@@ -150,9 +153,9 @@ def _solve_chunk(mss, contacts, options, history, control, first, last, started,
     it = first
     while it < last and status == RUNNING:
         t0 = now()
-        _step_and_gather(mss, spheres.particle, spheres.centres, spheres.disp, spheres.collided,
-                         spheres.sphere_ptr, box, escaped, solids, contacts.grid,
-                         muscle_bone and use_solids)
+        _step_and_gather(mss, springs, spheres.particle, spheres.centres, spheres.disp,
+                         spheres.collided, spheres.sphere_ptr, box, escaped, solids,
+                         contacts.grid, muscle_bone and use_solids)
         t1 = now()
         bad = _first_set(escaped)
         if bad >= 0:
@@ -291,7 +294,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     v = np.zeros_like(x)
     relaxation = settings.relaxation
     mss = mss_state(x, v, np.zeros((3, 3, n)), prep.inv_mass, relaxation.time_step,
-                    relaxation.drag, settings.bulk_modulus, prep.cages, offsets, prep.layout)
+                    relaxation.drag, settings.bulk_modulus, prep.cages, offsets)
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     hashed, bone_table, lists = hash_state(spheres, settings.structure == STRUCTURE_HASH)
     contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings),
@@ -302,13 +305,13 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         TERMINATIONS.index(settings.termination), float(relaxation.displacement_threshold),
         float(settings.time_budget), _divergence_limits(posed, offsets, reach),
         world_box(posed, spheres.bone_centres))
-    history, status, rebuilds, lists = _iterate(model, settings, mss, contacts, control, lists,
-                                                progress)
+    history, status, rebuilds, lists = _iterate(model, settings, mss, prep.layout, contacts,
+                                                control, lists, progress)
     return _result(prep, settings, mss, spheres, contacts, control.box, lists, history, status,
                    rebuilds)
 
 
-def _iterate(model, settings, mss, contacts, control, lists, progress):
+def _iterate(model, settings, mss, springs, contacts, control, lists, progress):
     """The iterations in chunks of about :data:`CHUNK_SECONDS` (``progress`` called between
     them). Returns ``(history, status, rebuilds, lists)``, ``history`` trimmed to the
     iterations run."""
@@ -327,8 +330,8 @@ def _iterate(model, settings, mss, contacts, control, lists, progress):
         before = done
         tick = time.perf_counter()
         status, done, bad, more, lists = _solve_chunk(
-            mss, contacts, options, history, control, done, min(cap, done + chunk), started,
-            lists)
+            mss, springs, contacts, options, history, control, done, min(cap, done + chunk),
+            started, lists)
         rebuilds += more
         per_iteration = (time.perf_counter() - tick) / max(done - before, 1)
         chunk = int(min(max(CHUNK_SECONDS / max(per_iteration, 1e-9), 1), 1000))
