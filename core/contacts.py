@@ -87,8 +87,8 @@ the spatial hash) and which contacts count."""
 
 def contact_options(settings: SolverSettings) -> ContactOptions:
     """The :class:`ContactOptions` of ``settings``."""
-    return ContactOptions(settings.structure == STRUCTURE_BVH, bool(settings.muscle_muscle),
-                          bool(settings.muscle_bone))
+    return ContactOptions(settings.contacts.structure == STRUCTURE_BVH, bool(settings.contacts.muscle_muscle),
+                          bool(settings.contacts.muscle_bone))
 
 
 def collision_spheres(prep: PreparedModel, bone_centres=None, bone_radius=None, bone_id=None):
@@ -134,9 +134,9 @@ def hash_state(spheres: Spheres, used: bool):
 
 def bvh_state(spheres: Spheres, settings: SolverSettings) -> octree_bvh.OctreeBVH:
     """The octree BVH of ``spheres`` when ``settings`` choose it, else an empty one."""
-    if settings.structure == STRUCTURE_BVH:
-        return octree_bvh.octree_bvh(spheres, int(settings.bvh_max_depth),
-                                     int(settings.bvh_min_primitives))
+    if settings.contacts.structure == STRUCTURE_BVH:
+        return octree_bvh.octree_bvh(spheres, int(settings.contacts.bvh_max_depth),
+                                     int(settings.contacts.bvh_min_primitives))
     return octree_bvh.octree_bvh(make_spheres(np.zeros(0), np.zeros(0, np.int64),
                                               np.zeros(0, bool), np.zeros(0, bool)))
 
@@ -368,12 +368,12 @@ def final_passes(x, v, contacts, settings: SolverSettings, lists, collided_spher
     and any contact counts; ``collided_spheres`` and ``solid_collided`` (as :func:`project`'s
     ``ever_collided`` and ``solid_ever``) arrive with the contacts of the solve and leave with
     those of the passes too. Returns ``(passes run, deepest overlap left mm, seconds)``."""
-    if not (settings.projection_passes > 0 and (settings.muscle_muscle or settings.muscle_bone)):
+    if not (settings.contacts.projection_passes > 0 and (settings.contacts.muscle_muscle or settings.contacts.muscle_bone)):
         return 0, 0.0, 0.0
     tick = time.perf_counter()
     passes, left, _ = project(x, v, contacts, contact_options(settings),
-                              int(settings.projection_passes),
-                              float(settings.penetration_tolerance), lists, collided_spheres,
+                              int(settings.contacts.projection_passes),
+                              float(settings.contacts.penetration_tolerance), lists, collided_spheres,
                               solid_collided, box)
     return passes, left, time.perf_counter() - tick
 

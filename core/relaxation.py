@@ -59,7 +59,7 @@ from .errors import MuscleMSSError
 from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
                     stability_problem)
 from .mss import mss_state, muscle_step
-from .settings import (STRUCTURE_HASH, STRUCTURES, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
+from .settings import (STRUCTURE_HASH, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
                        TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
 from .solid_contacts import respond_solids, solid_contacts_range, solid_grid, solid_state
 
@@ -226,26 +226,18 @@ def _respond_and_measure(x, v, x_prev, offsets, particle, disp, collided, sphere
 
 
 def check_settings(settings: SolverSettings) -> None:
+    """Raise :class:`MuscleMSSError` unless ``settings`` are valid for this method."""
     if settings.termination not in TERMINATIONS:
         raise MuscleMSSError(f"termination {settings.termination!r} is not one of "
                              f"{', '.join(TERMINATIONS)}")
-    if settings.structure not in STRUCTURES:
-        raise MuscleMSSError(f"collision structure {settings.structure!r} is not one of "
-                             f"{', '.join(STRUCTURES)}")
-    if not (settings.projection_passes >= 0 and int(settings.projection_passes)
-            == settings.projection_passes):
-        raise MuscleMSSError(f"solver projection passes is {settings.projection_passes}; it "
-                             "must be a whole number, 0 or more")
+    settings.contacts.check()
     for name, value in (("iterations", settings.iterations),
-                        ("time step", settings.relaxation.time_step),
-                        ("BVH max depth", settings.bvh_max_depth),
-                        ("BVH min primitives", settings.bvh_min_primitives)):
+                        ("time step", settings.relaxation.time_step)):
         if not value > 0:
             raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
     for name, value in (("displacement threshold", settings.relaxation.displacement_threshold),
                         ("time budget", settings.time_budget),
                         ("drag", settings.relaxation.drag),
-                        ("penetration tolerance", settings.penetration_tolerance),
                         ("bulk modulus", settings.bulk_modulus)):
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
@@ -296,7 +288,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     mss = mss_state(x, v, np.zeros((3, 3, n)), prep.inv_mass, relaxation.time_step,
                     relaxation.drag, settings.bulk_modulus, prep.cages, offsets)
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
-    hashed, bone_table, lists = hash_state(spheres, settings.structure == STRUCTURE_HASH)
+    hashed, bone_table, lists = hash_state(spheres, settings.contacts.structure == STRUCTURE_HASH)
     contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings),
                         solid_state(bone_solids, x, prep), solid_grid(bone_solids))
     reach = (2.0 * (max(spheres.radius, default=0.0) + max(spheres.bone_radius, default=0.0))

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
+import numpy as np
+
+from .errors import MuscleMSSError
 from .octree_bvh import MAX_DEPTH as DEFAULT_BVH_MAX_DEPTH
 from .octree_bvh import MIN_PRIMITIVES as DEFAULT_BVH_MIN_PRIMITIVES
 
@@ -76,6 +79,39 @@ DEFAULT_CONTACT_WEIGHT = 0.3
 
 
 @dataclass(slots=True)
+class ContactSettings:
+    """What both methods read of the contacts: the ``structure`` that finds them (one of
+    :data:`STRUCTURES`; the octree BVH's ``bvh_max_depth`` and ``bvh_min_primitives``), which
+    count (``muscle_muscle``, ``muscle_bone``), and the final collision passes, run up to
+    ``projection_passes`` times until no overlap exceeds ``penetration_tolerance`` mm."""
+
+    structure: str = STRUCTURE_HASH
+    bvh_max_depth: int = DEFAULT_BVH_MAX_DEPTH
+    bvh_min_primitives: int = DEFAULT_BVH_MIN_PRIMITIVES
+    muscle_muscle: bool = True
+    muscle_bone: bool = True
+    projection_passes: int = DEFAULT_PROJECTION_PASSES
+    penetration_tolerance: float = DEFAULT_PENETRATION_TOLERANCE
+
+    def check(self) -> None:
+        """Raise :class:`MuscleMSSError` naming the first setting out of its range."""
+        if self.structure not in STRUCTURES:
+            raise MuscleMSSError(f"collision structure {self.structure!r} is not one of "
+                                 f"{', '.join(STRUCTURES)}")
+        if not (self.projection_passes >= 0
+                and int(self.projection_passes) == self.projection_passes):
+            raise MuscleMSSError(f"solver projection passes is {self.projection_passes}; it "
+                                 "must be a whole number, 0 or more")
+        for name, value in (("BVH max depth", self.bvh_max_depth),
+                            ("BVH min primitives", self.bvh_min_primitives)):
+            if not value > 0:
+                raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
+        if not (self.penetration_tolerance >= 0.0 and np.isfinite(self.penetration_tolerance)):
+            raise MuscleMSSError(f"solver penetration tolerance is {self.penetration_tolerance}; "
+                                 "it must be finite and 0 or more")
+
+
+@dataclass(slots=True)
 class RelaxationSettings:
     """What only the paper relaxation reads: its termination threshold (mm per iteration), the
     time step (s) of its semi-implicit Euler integration and the viscous drag (1/s)."""
@@ -104,29 +140,16 @@ class SolverSettings:
 
     ``method`` one of :data:`METHODS`; ``termination`` one of :data:`TERMINATIONS` (the
     quasi-static method honours only ``time budget``, besides its tolerance); ``iterations``
-    caps every termination; ``time_budget`` s; ``bulk_modulus`` g/(mm s^2); ``structure`` one
-    of :data:`STRUCTURES` (both methods' final collision passes, and the relaxation's
-    iterations); ``muscle_muscle`` / ``muscle_bone`` which contacts count; the final collision
-    passes run up to ``projection_passes`` times until no overlap exceeds
-    ``penetration_tolerance`` mm. The method-specific parts sit beside them.
+    caps every termination; ``time_budget`` s; ``bulk_modulus`` g/(mm s^2); ``contacts`` the
+    :class:`ContactSettings` both methods read. The method-specific parts sit beside them.
     """
 
     method: str = DEFAULT_METHOD
-    # when to stop
     termination: str = TERMINATION_ITERATIONS
     iterations: int = DEFAULT_ITERATIONS
     time_budget: float = DEFAULT_TIME_BUDGET
-    # the model's volume term
     bulk_modulus: float = DEFAULT_BULK_MODULUS
-    # contacts
-    structure: str = STRUCTURE_HASH
-    bvh_max_depth: int = DEFAULT_BVH_MAX_DEPTH
-    bvh_min_primitives: int = DEFAULT_BVH_MIN_PRIMITIVES
-    muscle_muscle: bool = True
-    muscle_bone: bool = True
-    projection_passes: int = DEFAULT_PROJECTION_PASSES
-    penetration_tolerance: float = DEFAULT_PENETRATION_TOLERANCE
-    # the methods' own parts
+    contacts: ContactSettings = field(default_factory=ContactSettings)
     relaxation: RelaxationSettings = field(default_factory=RelaxationSettings)
     quasi_static: QuasiStaticSettings = field(default_factory=QuasiStaticSettings)
 
@@ -140,7 +163,8 @@ class SolverSettings:
         """Settings from flat keywords, each given to the part that has a field of its name
         (``SolverSettings.build(method=METHOD_QUASI_STATIC, iterations=300, tolerance=1e-4)``);
         an unknown name is a TypeError, as for the constructor."""
-        parts = {"relaxation": RelaxationSettings, "quasi_static": QuasiStaticSettings}
+        parts = {"contacts": ContactSettings, "relaxation": RelaxationSettings,
+                 "quasi_static": QuasiStaticSettings}
         own = {f.name for f in fields(cls)} - set(parts)
         unknown = set(values) - own - {f.name for part in parts.values() for f in fields(part)}
         if unknown:

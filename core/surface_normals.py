@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .volume import vector_between
+
 
 @njit(cache=True)
 def point_normals(points, triangles):
@@ -20,12 +22,8 @@ def point_normals(points, triangles):
     total = np.zeros((points.shape[0], 3))
     for t in range(triangles.shape[0]):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ux = points[b, 0] - points[a, 0]
-        uy = points[b, 1] - points[a, 1]
-        uz = points[b, 2] - points[a, 2]
-        vx = points[c, 0] - points[a, 0]
-        vy = points[c, 1] - points[a, 1]
-        vz = points[c, 2] - points[a, 2]
+        ux, uy, uz = vector_between(points, b, points, a)
+        vx, vy, vz = vector_between(points, c, points, a)
         nx = uy * vz - uz * vy
         ny = uz * vx - ux * vz
         nz = ux * vy - uy * vx

@@ -41,21 +41,21 @@ def volume_error(volume: float, rest_volume: float) -> float:
     return abs(volume - rest_volume) / abs(rest_volume)
 
 
+@numba.njit(cache=True, inline="always")
+def vector_between(head, i, tail, j):
+    """The components (mm) of ``head[i] - tail[j]`` (rows of (n, 3) point arrays)."""
+    return head[i, 0] - tail[j, 0], head[i, 1] - tail[j, 1], head[i, 2] - tail[j, 2]
+
+
 @numba.njit(cache=True, parallel=True)
 def _winding_numbers(points, surface_points, triangles, out):
     for q in numba.prange(points.shape[0]):
         total = 0.0
         for t in range(triangles.shape[0]):
             i, j, k = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-            ax = surface_points[i, 0] - points[q, 0]
-            ay = surface_points[i, 1] - points[q, 1]
-            az = surface_points[i, 2] - points[q, 2]
-            bx = surface_points[j, 0] - points[q, 0]
-            by = surface_points[j, 1] - points[q, 1]
-            bz = surface_points[j, 2] - points[q, 2]
-            cx = surface_points[k, 0] - points[q, 0]
-            cy = surface_points[k, 1] - points[q, 1]
-            cz = surface_points[k, 2] - points[q, 2]
+            ax, ay, az = vector_between(surface_points, i, points, q)
+            bx, by, bz = vector_between(surface_points, j, points, q)
+            cx, cy, cz = vector_between(surface_points, k, points, q)
             la = np.sqrt(ax * ax + ay * ay + az * az)
             lb = np.sqrt(bx * bx + by * by + bz * bz)
             lc = np.sqrt(cx * cx + cy * cy + cz * cz)

@@ -66,8 +66,8 @@ from muscle_mss.core.settings import (
     DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS, DEFAULT_METHOD,
     DEFAULT_PENETRATION_TOLERANCE, DEFAULT_PROJECTION_PASSES, DEFAULT_TIME_BUDGET,
     DEFAULT_TIME_STEP, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, METHODS, STRUCTURE_HASH,
-    STRUCTURES, TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS, QuasiStaticSettings,
-    RelaxationSettings, SolverSettings)
+    STRUCTURES, TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS, ContactSettings,
+    QuasiStaticSettings, RelaxationSettings, SolverSettings)
 
 from . import array_names as A
 from .bone_sets import bone_depths, bone_solids, bone_sphere_set, particles_in_bones
@@ -303,12 +303,14 @@ class MSSCollisionSolver(MuscleFilter):
         return SolverSettings(
             method=self.choice("Method"), termination=self.choice("Termination"),
             iterations=self.value("Iterations"), time_budget=self.value("TimeBudget"),
-            bulk_modulus=self.value("BulkModulus"), structure=self.choice("CollisionStructure"),
-            bvh_max_depth=self.value("BVHMaxDepth"),
-            bvh_min_primitives=self.value("BVHMinPrimitives"),
-            muscle_muscle=self.value("MuscleMuscle"), muscle_bone=self.value("MuscleBone"),
-            projection_passes=self.value("ProjectionPasses"),
-            penetration_tolerance=self.value("PenetrationTolerance"),
+            bulk_modulus=self.value("BulkModulus"),
+            contacts=ContactSettings(
+                structure=self.choice("CollisionStructure"),
+                bvh_max_depth=self.value("BVHMaxDepth"),
+                bvh_min_primitives=self.value("BVHMinPrimitives"),
+                muscle_muscle=self.value("MuscleMuscle"), muscle_bone=self.value("MuscleBone"),
+                projection_passes=self.value("ProjectionPasses"),
+                penetration_tolerance=self.value("PenetrationTolerance")),
             relaxation=RelaxationSettings(
                 displacement_threshold=self.value("DisplacementThreshold"),
                 time_step=self.value("TimeStep"), drag=self.value("Drag")),

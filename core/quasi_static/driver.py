@@ -14,7 +14,7 @@ from ..contacts import (Contacts, bvh_state, collision_spheres, final_passes, ha
                         solved_state, world_box)
 from ..errors import MuscleMSSError
 from ..model import MSSModel, PreparedModel, SolveResult, check_history_size, prepare
-from ..settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, STRUCTURES, TERMINATION_BUDGET,
+from ..settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, TERMINATION_BUDGET,
                         TERMINATION_ITERATIONS, SolverSettings)
 from ..solid_contacts import solid_grid, solid_state
 from .energy import ContactEnergy
@@ -69,17 +69,13 @@ def _record(cap: int, n_muscles: int) -> IterationRecord:
 
 def check_settings(settings: SolverSettings) -> None:
     """Raise :class:`MuscleMSSError` unless ``settings`` are valid for this method."""
-    if settings.structure not in STRUCTURES:
-        raise MuscleMSSError(f"collision structure {settings.structure!r} is not one of "
-                             f"{', '.join(STRUCTURES)}")
+    settings.contacts.check()
     for name, value, least in (("iterations", settings.iterations, 1),
-                               ("projection passes", settings.projection_passes, 0),
                                ("history", settings.quasi_static.history, 0)):
         if not (value >= least and int(value) == value):
             raise MuscleMSSError(f"solver {name} is {value}; it must be a whole number, "
                                  f"{least} or more")
     for name, value in (("tolerance", settings.quasi_static.tolerance),
-                        ("penetration tolerance", settings.penetration_tolerance),
                         ("bulk modulus", settings.bulk_modulus)):
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
@@ -263,7 +259,7 @@ def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids,
     touching_solid = energy_of.solid_deepest > 0.0
     if len(energy_of.solid_points):
         push_out_of_solids(x, energy_of.solid_points, energy_of.solid_radius, bone_solids)
-    use_bvh = settings.structure == STRUCTURE_BVH
+    use_bvh = settings.contacts.structure == STRUCTURE_BVH
     hashed, bone_table, lists = hash_state(spheres, not use_bvh)
     solids = solid_state(bone_solids, x, prep)
     contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings), solids,
@@ -290,4 +286,4 @@ def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids,
         stopped_by=outcome.stopped_by, rebuilds=energy_of.rebuilds, projection_passes=passes,
         remaining_penetration=left,
         residual=record.residual[:done].copy(), energy=record.energy[:done].copy(),
-        converged=outcome.converged and left <= settings.penetration_tolerance)
+        converged=outcome.converged and left <= settings.contacts.penetration_tolerance)

@@ -202,9 +202,9 @@ class ContactEnergy:
         self.bulk_modulus = float(settings.bulk_modulus)
         self.spheres = spheres
         ns = spheres.count
-        self.muscle_muscle = bool(settings.muscle_muscle)
-        self.solids = solids if settings.muscle_bone else None
-        self.muscle_bone = (bool(settings.muscle_bone) and self.solids is None
+        self.muscle_muscle = bool(settings.contacts.muscle_muscle)
+        self.solids = solids if settings.contacts.muscle_bone else None
+        self.muscle_bone = (bool(settings.contacts.muscle_bone) and self.solids is None
                             and len(spheres.bone_radius) > 0)
         self.skin = CONTACT_SKIN_FRACTION * float(spheres.radius.mean()) if ns else 0.0
         self.sphere_energy = np.zeros(ns)
