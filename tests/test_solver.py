@@ -191,3 +191,22 @@ def test_bad_settings_are_refused(pressed):
         run(pressed, termination="forever")
     with pytest.raises(MuscleMSSError, match="time step"):
         run(pressed, time_step=0.0)
+    with pytest.raises(MuscleMSSError, match="collision structure 'grid'"):
+        run(pressed, structure="grid")
+    with pytest.raises(MuscleMSSError, match="solver method 'newton' is not one of"):
+        run(pressed, method="newton")
+    with pytest.raises(MuscleMSSError, match="takes no start positions"):
+        model, bones = pressed
+        solver.solve(model, *bones, settings=SolverSettings(), start=model.positions)
+
+
+def test_settings_route_flat_names_to_their_part_and_refuse_unknown_ones():
+    settings = SolverSettings.build(iterations=7, structure="octree BVH", time_step=0.01,
+                                    tolerance=1e-4)
+    assert settings.iterations == 7 and settings.contacts.structure == "octree BVH"
+    assert settings.relaxation.time_step == 0.01 and settings.quasi_static.tolerance == 1e-4
+    assert settings.relaxation.drag == SolverSettings().relaxation.drag
+    with pytest.raises(TypeError, match="no field tolerence"):
+        SolverSettings.build(tolerence=1e-4)
+    with pytest.raises(AttributeError):
+        settings.tolerance = 1e-4       # the quasi-static part's, not a field of the whole
