@@ -27,9 +27,9 @@ Two methods (property ``Method``): ``paper relaxation`` (the default,
 :mod:`muscle_mss.core.relaxation`) runs the paper's explicit iterations; ``quasi-static``
 (:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the same model to
 ``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
-is not the default because on the demo thigh it needs about 1,100 iterations (11 s at N = 20)
-to reach its tolerance at the walking pose and does not reach it in 3,000 at the most flexed
-one (``benchmarks/results/quasi_static.md``; README "Speed" says why).
+is not the default because on the demo thigh at N = 20 it needs about 1,950 iterations to
+reach its tolerance at the walking pose and does not reach it in 3,000 at the most flexed one
+(``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why).
 The quasi-static table
 adds a ``residual`` column (mm, per iteration); both tables carry field data ``method`` and
 ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap above
@@ -185,8 +185,9 @@ class MSSCollisionSolver(MuscleFilter):
                  "pressure, fixed tendon particles and contacts to Tolerance (energy "
                  "minimisation by L-BFGS on a spring matrix factorised once per model, contacts "
                  "as penalties, then the final collision passes); TimeStep, Drag and "
-                 "DisplacementThreshold do not apply; on the demo thigh it converges at the "
-                 "walking pose, not at the most flexed one within 1000 steps. paper "
+                 "DisplacementThreshold do not apply; on the demo thigh it needs about 2,000 "
+                 "iterations at the walking pose and more than 3,000 at the most flexed "
+                 "one. paper "
                  "relaxation (the default): the paper's explicit iterations (mass-spring step, "
                  "collision response) with the terminations below.",
                  choices=METHODS, group="Method"),
