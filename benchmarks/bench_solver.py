@@ -98,7 +98,9 @@ def main(sizes):
         per_muscle = int(np.diff(model.offsets)[0])
         boundary = int(model.boundary.sum() / len(model.names))
         for structure in STRUCTURES:
-            settings = SolverSettings.build(iterations=ITERATIONS, structure=structure)
+            # the paper's model (no connective tissue), whatever the default
+            settings = SolverSettings.build(iterations=ITERATIONS, structure=structure,
+                                            connective_tissue=0.0)
             S.solve(model, *bones, settings=SolverSettings.build(iterations=2, structure=structure),
                     prepared=prepared)
             runs = []

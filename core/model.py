@@ -66,7 +66,9 @@ class SolveResult:
     their tally only); ``stopped_by`` the termination that ended the loop;
     ``projection_passes`` the collision passes after the last iteration and
     ``remaining_penetration`` (mm) the deepest overlap the last of them found (0: none; at most
-    the tolerance unless the passes ran out); ``method`` the method that solved it.
+    the tolerance unless the passes ran out); ``method`` the method that solved it;
+    ``tissue_share`` (M,) % the connective tissue's force over the springs' per muscle
+    (:func:`~muscle_mss.core.connective_tissue.tissue_share`; None: not measured).
     """
 
     positions: np.ndarray
@@ -83,6 +85,7 @@ class SolveResult:
     projection_passes: int = 0
     remaining_penetration: float = 0.0
     method: str = METHOD_RELAXATION
+    tissue_share: np.ndarray | None = None
 
     @property
     def iterations(self) -> int:

@@ -161,7 +161,7 @@ def no_cages(n_muscles: int) -> VolumeCages:
 
 MSSState = namedtuple("MSSState", (
     "x", "v", "x_prev", "force", "scratch", "inv_mass", "dt", "drag", "bulk_modulus", "cage_ptr",
-    "cage_triangles", "rest_volume", "offsets"))
+    "cage_triangles", "rest_volume", "offsets", "tissue", "target"))
 MSSState.__doc__ = """The mass-spring system's state and parameters for the step kernels; the
 springs travel beside it (:class:`SpringLayout`). Both are flat and have fewer than 16 fields:
 they go to parallel loops, which take no nested tuple, and Numba 0.56 lowers no named tuple of
@@ -171,15 +171,22 @@ they go to parallel loops, which take no nested tuple, and Numba 0.56 lowers no 
 ``scratch`` (3, n) work arrays; ``inv_mass`` (n,) 1/g, 0 for fixed particles (so they never
 move); ``dt`` s; ``drag`` 1/s and ``bulk_modulus`` g/(mm s^2) as in :func:`mss_steps`;
 ``cage_ptr``, ``cage_triangles``, ``rest_volume`` the :class:`VolumeCages`; ``offsets`` (M+1,)
-the muscles' particle ranges."""
+the muscles' particle ranges; ``tissue`` (n,) g/s^2 and ``target`` (3, n) mm the connective
+tissue's stiffness and targets (:mod:`muscle_mss.core.connective_tissue`), both empty (length
+0) for none."""
 
 
 def mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages: VolumeCages,
-              offsets) -> MSSState:
+              offsets, tissue=None, target=None) -> MSSState:
     """The :class:`MSSState` of positions and velocities ``x``, ``v`` (3, n), work space
-    ``work`` (3, 3, n) (previous positions, forces, scratch) and the parameters."""
+    ``work`` (3, 3, n) (previous positions, forces, scratch) and the parameters; ``tissue``
+    (n,) and ``target`` (3, n) the connective tissue (omitted: none)."""
+    if tissue is None:
+        tissue, target = np.zeros(0), np.zeros((3, 0))
     return MSSState(x, v, work[0], work[1], work[2], inv_mass, float(dt), float(drag),
-                    float(bulk_modulus), *cages.arrays, offsets)
+                    float(bulk_modulus), *cages.arrays, offsets,
+                    np.ascontiguousarray(tissue, dtype=np.float64),
+                    np.ascontiguousarray(target, dtype=np.float64))
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
@@ -368,6 +375,18 @@ def _implicit_volume_forces(m, state):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _tissue_forces(m, state):
+    """Add the connective tissue's pull ``-k_i (x_i - t_i)`` on the particles of muscle ``m``
+    to ``state.force`` (none when ``state.tissue`` is empty)."""
+    if state.tissue.shape[0] == 0:
+        return
+    x, force, tissue, target = state.x, state.force, state.tissue, state.target
+    for axis in range(3):
+        for p in range(state.offsets[m], state.offsets[m + 1]):
+            force[axis, p] -= tissue[p] * (x[axis, p] - target[axis, p])
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def _integrate(x, v, x_prev, force, inv_mass, first, stop, dt, keep):
     """One coordinate of the semi-implicit Euler step with implicit drag for particles
     ``[first, stop)``; ``keep = 1 / (1 + dt drag)``."""
@@ -383,6 +402,7 @@ def muscle_step(m, state, springs):
     springs ``springs`` (:class:`SpringLayout`), in place. Muscles are independent: callers run
     them as the tasks of one ``prange``."""
     _muscle_forces(m, state, springs)
+    _tissue_forces(m, state)
     # the spring kernels are done with scratch's entries of muscle m: the volume term reuses them
     _implicit_volume_forces(m, state)
     keep = 1.0 / (1.0 + state.dt * state.drag)

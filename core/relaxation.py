@@ -58,6 +58,7 @@ from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_sph
 from .errors import MuscleMSSError
 from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
                     stability_problem)
+from .connective_tissue import tissue_stiffness
 from .mss import mss_state, muscle_step
 from .settings import (STRUCTURE_HASH, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
                        TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
@@ -238,7 +239,8 @@ def check_settings(settings: SolverSettings) -> None:
     for name, value in (("displacement threshold", settings.relaxation.displacement_threshold),
                         ("time budget", settings.time_budget),
                         ("drag", settings.relaxation.drag),
-                        ("bulk modulus", settings.bulk_modulus)):
+                        ("bulk modulus", settings.bulk_modulus),
+                        ("connective tissue", settings.connective_tissue)):
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
 
@@ -285,8 +287,10 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     x = np.ascontiguousarray(posed.T)
     v = np.zeros_like(x)
     relaxation = settings.relaxation
+    tissue = ((tissue_stiffness(model, prep.order, prep.fixed, settings.connective_tissue),
+               np.ascontiguousarray(posed.T)) if settings.connective_tissue > 0.0 else ())
     mss = mss_state(x, v, np.zeros((3, 3, n)), prep.inv_mass, relaxation.time_step,
-                    relaxation.drag, settings.bulk_modulus, prep.cages, offsets)
+                    relaxation.drag, settings.bulk_modulus, prep.cages, offsets, *tissue)
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     hashed, bone_table, lists = hash_state(spheres, settings.contacts.structure == STRUCTURE_HASH)
     contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings),

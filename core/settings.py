@@ -46,6 +46,10 @@ DEFAULT_TIME_BUDGET = 1.0               # s
 # at 50 and -2.1 % at 200 (surface volume error 6.7 -> 4.8 %); 1000 gains little more (4.2 %)
 # because the rest of the surface's error is the MVC map's and the bone push's, not the cage's.
 DEFAULT_BULK_MODULUS = 200.0            # g/(mm s^2)
+# The connective tissue (epimysium, septa, fascia) holding every free particle toward its posed
+# rest position, as a ratio to the fibre springs' stiffness (core/connective_tissue.py); 0 is
+# the paper's model, free-floating between the tendons.
+DEFAULT_CONNECTIVE_TISSUE = 0.0
 # The final collision passes (:func:`muscle_mss.core.contacts.project`): a sphere pressed
 # between two objects keeps half its overlap per pass (two passes halve it), so 100 passes leave
 # any overlap below 1e-15 of itself; they stop as soon as the deepest penetration is below the
@@ -140,7 +144,9 @@ class SolverSettings:
 
     ``method`` one of :data:`METHODS`; ``termination`` one of :data:`TERMINATIONS` (the
     quasi-static method honours only ``time budget``, besides its tolerance); ``iterations``
-    caps every termination; ``time_budget`` s; ``bulk_modulus`` g/(mm s^2); ``contacts`` the
+    caps every termination; ``time_budget`` s; ``bulk_modulus`` g/(mm s^2);
+    ``connective_tissue`` the dimensionless ratio of
+    :func:`muscle_mss.core.connective_tissue.tissue_stiffness` (0: none); ``contacts`` the
     :class:`ContactSettings` both methods read. The method-specific parts sit beside them.
     """
 
@@ -149,6 +155,7 @@ class SolverSettings:
     iterations: int = DEFAULT_ITERATIONS
     time_budget: float = DEFAULT_TIME_BUDGET
     bulk_modulus: float = DEFAULT_BULK_MODULUS
+    connective_tissue: float = DEFAULT_CONNECTIVE_TISSUE
     contacts: ContactSettings = field(default_factory=ContactSettings)
     relaxation: RelaxationSettings = field(default_factory=RelaxationSettings)
     quasi_static: QuasiStaticSettings = field(default_factory=QuasiStaticSettings)

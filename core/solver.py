@@ -15,6 +15,7 @@ method's kernels are loaded and compiled.
 """
 from __future__ import annotations
 
+from .connective_tissue import tissue_share
 from .model import MSSModel, PreparedModel, SolveResult, prepare
 from .settings import METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS, SolverSettings
 from .errors import MuscleMSSError
@@ -34,10 +35,14 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             raise MuscleMSSError("the paper relaxation starts from the posed particles; it "
                                  "takes no start positions")
         from .relaxation import solve as relax
-        return relax(model, bone_centres, bone_radius, bone_id, settings, progress, prepared,
-                     bone_solids)
-    if settings.method == METHOD_QUASI_STATIC:
+        result = relax(model, bone_centres, bone_radius, bone_id, settings, progress, prepared,
+                       bone_solids)
+    elif settings.method == METHOD_QUASI_STATIC:
         from .quasi_static import solve as equilibrium
-        return equilibrium(model, bone_centres, bone_radius, bone_id, settings, progress,
-                           prepared, start, bone_solids)
-    raise MuscleMSSError(f"solver method {settings.method!r} is not one of {', '.join(METHODS)}")
+        result = equilibrium(model, bone_centres, bone_radius, bone_id, settings, progress,
+                             prepared, start, bone_solids)
+    else:
+        raise MuscleMSSError(f"solver method {settings.method!r} is not one of "
+                             f"{', '.join(METHODS)}")
+    result.tissue_share = tissue_share(model, result.positions, settings.connective_tissue)
+    return result

@@ -62,6 +62,8 @@ PROJECTION_PASSES = "projection_passes"  # float64, collision passes after the l
 REMAINING_PENETRATION = "remaining_penetration"  # float64, mm, deepest overlap they left
 CONVERGED = "converged"              # float64 1/0, the solve reached its tolerance (solver)
 METHOD = "method"                    # string, the solver method that produced the table
+TISSUE_SHARE_PCT = "tissue_share_pct"  # float64, %, field data of each solved muscle block:
+#                                        the connective tissue's force over its springs' force
 
 # Columns of the MSS Collision Solver's convergence table (one row per iteration).
 ITERATION = "iteration"              # int, 1 = the first iteration

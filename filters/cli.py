@@ -111,13 +111,15 @@ class ProgressBar:
 def summary_table(rows) -> str:
     """Per muscle over the whole motion: mean and max volume error, max fibre strain, max
     sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
-    Deformer's push out) and before the push, mean iterations and seconds per time point; then
-    the mean over muscles."""
+    Deformer's push out) and before the push, the largest share of the connective tissue in
+    the muscle's load (%), mean iterations and seconds per time point; then the mean over
+    muscles."""
     by_muscle = {}
     for r in rows:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
-              f"{'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'iters':>6s} "
+              f"{'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'tissue %':>8s} "
+              f"{'iters':>6s} "
               f"{'s/time':>7s}")
     lines = [header, "-" * len(header)]
     means = []
@@ -129,6 +131,7 @@ def summary_table(rows) -> str:
                      f"{max(float(r[A.SPHERE_OVERLAP_MM]) for r in rs):10.3f} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM):>10s} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_MM):>10s} "
+                     f"{max(float(r[A.TISSUE_SHARE_PCT]) for r in rs):8.1f} "
                      f"{sum(int(r[A.ITERATIONS]) for r in rs) / len(rs):6.0f} "
                      f"{sum(float(r[A.SECONDS]) for r in rs) / len(rs):7.2f}")
     lines.append("-" * len(header))

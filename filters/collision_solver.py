@@ -62,7 +62,7 @@ from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.cage import fibre_polylines
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import (
-    DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_BVH_MIN_PRIMITIVES,
+    DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE, DEFAULT_BVH_MIN_PRIMITIVES,
     DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS, DEFAULT_METHOD,
     DEFAULT_PENETRATION_TOLERANCE, DEFAULT_PROJECTION_PASSES, DEFAULT_TIME_BUDGET,
     DEFAULT_TIME_STEP, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, METHODS, STRUCTURE_HASH,
@@ -240,6 +240,17 @@ class MSSCollisionSolver(MuscleFilter):
                  "nearly incompressible, a spring lattice is not: without it a stretched lattice "
                  "narrows and loses volume. 0 turns it off (the paper's springs only).",
                  minimum=0.0, group="Integration"),
+        Property("ConnectiveTissue", "double", DEFAULT_CONNECTIVE_TISSUE,
+                 "The connective tissue (epimysium, septa, fascia) that ties every muscle to "
+                 "the tissue around it, which moves with the skeleton: each free particle is "
+                 "held toward its posed rest position by a spring of this ratio to its muscle's "
+                 "mean spring stiffness (energy k |x - x_posed|^2 / 2; the ratio is the one at "
+                 "20 particles per fibre, scaled by ((20 - 1) / (N - 1))^2 at N so that the "
+                 "shape does not depend on the resolution). It makes the equilibrium of slack, "
+                 "slender muscles well-defined, so that the quasi-static method converges and "
+                 "the shape does not depend on the iteration cap. Both methods; 0 is the "
+                 "paper's model (muscles free between their tendons).",
+                 minimum=0.0, group="Integration"),
         Property("CollisionStructure", "enum", STRUCTURE_HASH,
                  "How colliding spheres are found. spatial hash: a uniform grid with candidate "
                  "lists, parallel (the fast default). octree BVH: the paper's per-object octree "
@@ -305,6 +316,7 @@ class MSSCollisionSolver(MuscleFilter):
             method=self.choice("Method"), termination=self.choice("Termination"),
             iterations=self.value("Iterations"), time_budget=self.value("TimeBudget"),
             bulk_modulus=self.value("BulkModulus"),
+            connective_tissue=self.value("ConnectiveTissue"),
             contacts=ContactSettings(
                 structure=self.choice("CollisionStructure"),
                 bvh_max_depth=self.value("BVHMaxDepth"),
@@ -344,6 +356,7 @@ class MSSCollisionSolver(MuscleFilter):
             for key, value in zip(A.FREE_IN_BONE_FIELDS, particles_in_bones(
                     depth[lo:hi], ~model.fixed[lo:hi], in_bone)):
                 V.set_field(out, key, value)
+            V.set_field(out, A.TISSUE_SHARE_PCT, float(result.tissue_share[m]))
             items.append((name, out))
         V.fill_multiblock(outputs[0], items)
         columns = {A.ITERATION: np.arange(1, result.iterations + 1)}

@@ -156,6 +156,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             A.VOLUME_ERROR_PCT: float(table[A.VOLUME_ERROR_PCT][r]),
             A.MEAN_FIBRE_STRAIN: fibre_stats[name][0], A.MAX_FIBRE_STRAIN: fibre_stats[name][1],
             A.SPHERE_OVERLAP_MM: float(penetration[k]),
+            A.TISSUE_SHARE_PCT: float(V.field(blocks[name], A.TISSUE_SHARE_PCT)),
             **{c: _count_or_depth(c, table[c][r]) for c in IN_BONE_COLUMNS},
             **{key: (int if key in (A.FREE_IN_BONE, A.FREE_NEW_IN_BONE) else float)(
                 V.field(blocks[name], key)) for key in A.FREE_IN_BONE_FIELDS},

@@ -8,8 +8,9 @@ iterations and tolerance from :mod:`muscle_mss.core.settings`, the series and co
 """
 from __future__ import annotations
 
-from muscle_mss.core.settings import (DEFAULT_ITERATIONS, DEFAULT_METHOD, DEFAULT_TOLERANCE,
-                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS)
+from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_ITERATIONS,
+                                      DEFAULT_METHOD, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC,
+                                      METHOD_RELAXATION, METHODS)
 
 from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
 from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
@@ -27,7 +28,8 @@ def method_option(method: str) -> str:
 
 def add_run_options(p) -> None:
     """The options that set up a run (``argparse`` parser ``p``): what the filters compute
-    (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``) and what is
+    (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``,
+    ``--connective-tissue``) and what is
     written, and how (``--write``, ``--compressor``)."""
     p.add_argument("--resolution", type=int,
                    help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
@@ -46,13 +48,17 @@ def add_run_options(p) -> None:
     p.add_argument("--tolerance", type=float,
                    help="quasi-static tolerance: largest particle move of a step, mm "
                         f"(default {DEFAULT_TOLERANCE:g})")
+    p.add_argument("--connective-tissue", type=float,
+                   help="connective tissue holding each free particle toward its posed position, "
+                        "as a ratio to the springs' stiffness; 0: the paper's model "
+                        f"(default {DEFAULT_CONNECTIVE_TISSUE:g})")
 
 
 def settings_from(args) -> dict:
     """Filter property settings from the options that were given."""
     pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
              ("Iterations", args.iterations), ("Method", METHOD_OPTIONS.get(args.method)),
-             ("Tolerance", args.tolerance))
+             ("Tolerance", args.tolerance), ("ConnectiveTissue", args.connective_tissue))
     return {name: value for name, value in pairs if value is not None}
 
 

@@ -67,11 +67,14 @@ def chain_on_a_ball():
     return model, bone
 
 
-def minimise_reference(model, bone, weight):
+def minimise_reference(model, bone, weight, tissue=None):
     """The same energy minimised by scipy (L-BFGS-B): springs plus the contact penalty
-    ``weight / 2 * penetration^2`` of each free sphere against the bone sphere."""
+    ``weight / 2 * penetration^2`` of each free sphere against the bone sphere, plus the
+    connective tissue ``tissue[i] / 2 |x_i - posed_i|^2`` (``tissue`` (n,) g/s^2, input
+    order) when given."""
     free = ~model.fixed
     centre, radius = bone[0][0], bone[1][0]
+    tissue = np.zeros(len(free)) if tissue is None else tissue
 
     def energy(flat):
         x = model.positions.copy()
@@ -88,6 +91,9 @@ def minimise_reference(model, bone, weight):
         pen = np.maximum(model.radius + radius - dist, 0.0) * free
         e += 0.5 * weight * np.sum(pen ** 2)
         grad -= (weight * pen / dist)[:, None] * off
+        pull = x - model.positions
+        e += 0.5 * np.sum(tissue[:, None] * pull ** 2)
+        grad += tissue[:, None] * pull
         return e, grad[free].ravel()
 
     best = minimize(energy, model.positions[free].ravel(), jac=True, method="L-BFGS-B",

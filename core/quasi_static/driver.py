@@ -76,7 +76,8 @@ def check_settings(settings: SolverSettings) -> None:
             raise MuscleMSSError(f"solver {name} is {value}; it must be a whole number, "
                                  f"{least} or more")
     for name, value in (("tolerance", settings.quasi_static.tolerance),
-                        ("bulk modulus", settings.bulk_modulus)):
+                        ("bulk modulus", settings.bulk_modulus),
+                        ("connective tissue", settings.connective_tissue)):
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
     weight = settings.quasi_static.contact_weight
@@ -123,7 +124,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         bone_solids.check()
     check_history_size(settings.iterations, len(model.names))
     prep = prepared if prepared is not None else prepare(model)
-    pre = preconditioner(model, prep)
+    pre = preconditioner(model, prep, settings.connective_tissue)
     n = int(prep.offsets[-1])
     posed = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)[prep.order]
     x = np.ascontiguousarray(posed.T)
@@ -136,7 +137,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
                               float(settings.quasi_static.contact_weight) * pre.stiffest,
-                              bone_solids)
+                              bone_solids, np.ascontiguousarray(posed.T))
     outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
     x[:, pre.free] = outcome.position.T
     return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, outcome)

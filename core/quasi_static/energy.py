@@ -1,5 +1,6 @@
 """The quasi-static solve's energy as a function of the free particles: springs and volume
-pressure (:func:`elastic_energy`) and the contact penalties of overlapping spheres
+pressure (:func:`elastic_energy`), the connective tissue
+(:func:`~muscle_mss.core.connective_tissue.add_tissue_energy`) and the contact penalties of overlapping spheres
 (:func:`sphere_contact_energy`) and of particles in a bone as a solid
 (:func:`solid_contact_energy`), found through candidate lists rebuilt when a sphere has moved
 half their skin (:class:`ContactEnergy`)."""
@@ -12,6 +13,7 @@ from numba import njit, prange
 
 from .. import spatial_hash
 from ..bone_distance import sample, to_rest
+from ..connective_tissue import add_tissue_energy
 from ..mss import add_cage_gradient, cage_volume
 from ..solid_contacts import solid_points
 from .preconditioner import Preconditioner, model_springs
@@ -190,9 +192,11 @@ class ContactEnergy:
     contact candidate lists it keeps up to date (see the module docstring)."""
 
     def __init__(self, model, prep, pre: Preconditioner, spheres, settings, x, weight,
-                 solids=None):
+                 solids=None, target=None):
         self.prep, self.pre, self.weight = prep, pre, weight
         self.x = x                                  # (3, n) mm, fixed particles posed
+        # the connective tissue's targets (3, n) mm, the posed particles (None: no tissue)
+        self.target = target if pre.tissue.any() else None
         self.free = pre.free
         n = x.shape[1]
         self.gradient = np.zeros((3, n))
@@ -289,6 +293,9 @@ class ContactEnergy:
         elastic_energy(self.x, self.gradient, self.volume_gradient, self.muscle_energy, springs[0],
                  springs[1], springs[2], springs[3], self.bulk_modulus, cages.ptr,
                  cages.triangles, cages.rest_volume, self.prep.offsets)
+        if self.target is not None:
+            add_tissue_energy(self.x, self.target, self.pre.tissue, self.prep.offsets,
+                              self.gradient, self.muscle_energy)
         self.seconds[0] += time.perf_counter() - tick
         self._refresh_lists()
         tick = time.perf_counter()

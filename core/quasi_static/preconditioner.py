@@ -11,6 +11,7 @@ import scipy.linalg as linalg
 import scipy.sparse as sparse
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from ..connective_tissue import tissue_stiffness
 from ..errors import MuscleMSSError
 from ..model import MSSModel, PreparedModel
 
@@ -24,12 +25,14 @@ class Preconditioner:
     particles ordered slice by slice along the fibres and of reverse Cuthill-McKee), ``factor``
     the lower banded Cholesky factor (LAPACK layout); ``stiffest`` (g/s^2) the largest sum of
     one particle's spring stiffnesses (the contact stiffness's unit); ``bandwidth`` the largest
-    block's."""
+    block's; ``tissue`` (n,) g/s^2 every particle's connective tissue stiffness (solver order,
+    :func:`~muscle_mss.core.connective_tissue.tissue_stiffness`), on ``L``'s diagonal."""
 
     free: np.ndarray
     blocks: list
     stiffest: float
     bandwidth: int
+    tissue: np.ndarray
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """``A^-1 rhs`` for ``rhs`` (f, c)."""
@@ -60,21 +63,25 @@ def _bandwidth(matrix, order) -> int:
     return int(np.abs(place[coo.row] - place[coo.col]).max(initial=0))
 
 
-def preconditioner(model: MSSModel, prep: PreparedModel) -> Preconditioner:
-    """The factorised ``L`` for ``prep``'s topology, cached on ``prep``. A muscle whose free
-    particles are not all joined to a fixed particle through springs would float: the solve
-    refuses it."""
-    key = "quasi-static preconditioner"
+def preconditioner(model: MSSModel, prep: PreparedModel,
+                   tissue_ratio: float = 0.0) -> Preconditioner:
+    """The factorised ``L`` plus the connective tissue of ``tissue_ratio`` on its diagonal,
+    for ``prep``'s topology, cached on ``prep``. Without tissue, a muscle whose free particles
+    are not all joined to a fixed particle through springs would float: the solve refuses
+    it."""
+    key = ("quasi-static preconditioner", float(tissue_ratio))
     if key in prep.cache:
         return prep.cache[key]
     ends, _, stiffness, _ = model_springs(model, prep)
     n = int(prep.offsets[-1])
     diagonal = np.bincount(ends.ravel(), np.repeat(stiffness, 2), minlength=n)
     stiffest = float(diagonal.max(initial=0.0) or 1.0)
+    tissue = tissue_stiffness(model, prep.order, prep.fixed, tissue_ratio)
     a, b = ends[:, 0], ends[:, 1]
     lap = sparse.coo_matrix(
-        (np.concatenate([stiffness, stiffness, -stiffness, -stiffness]),
-         (np.concatenate([a, b, a, b]), np.concatenate([a, b, b, a]))), shape=(n, n)).tocsr()
+        (np.concatenate([stiffness, stiffness, -stiffness, -stiffness, tissue]),
+         (np.concatenate([a, b, a, b, np.arange(n)]),
+          np.concatenate([a, b, b, a, np.arange(n)]))), shape=(n, n)).tocsr()
     free = np.flatnonzero(~prep.fixed)
     matrix = lap[free][:, free].tocsr()
     along = np.asarray(model.fibre_index).ravel()[prep.order][free]
@@ -104,7 +111,7 @@ def preconditioner(model: MSSModel, prep: PreparedModel) -> Preconditioner:
                 "the paper relaxation") from None
         blocks.append((rows[order], factor_))
         widest = max(widest, width)
-    result = Preconditioner(free, blocks, stiffest, widest)
+    result = Preconditioner(free, blocks, stiffest, widest, tissue)
     prep.cache[key] = result
     return result
 

@@ -1,0 +1,203 @@
+"""The connective tissue (core/connective_tissue.py, ConnectiveTissue): its stiffness per
+particle, its energy in the quasi-static solve (against scipy's minimiser of the same energy),
+its force in the paper relaxation (both methods reach the same equilibrium), the share it
+carries, and what 0 and rest mean."""
+import numpy as np
+import pytest
+
+from muscle_mss.core import model as S
+from muscle_mss.core import quasi_static as Q
+from muscle_mss.core import solver
+from muscle_mss.core.connective_tissue import (REFERENCE_PARTICLES, tissue_share,
+                                               tissue_stiffness)
+from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_CONTACT_WEIGHT,
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION,
+                                      TERMINATION_THRESHOLD, SolverSettings)
+
+from test_mss import lattice
+from test_quasi_static import chain_on_a_ball, minimise_reference, reference_forces
+
+
+def settings(method=METHOD_QUASI_STATIC, **values) -> SolverSettings:
+    return SolverSettings.build(method=method, **values)
+
+
+def slab(per_fibre, bend=0.0, length=38.0):
+    """A 3 x 3 x ``per_fibre`` lattice muscle ``length`` mm long, ends fixed; the free
+    particles posed on a circular arc that lifts its middle by ``bend`` mm (the tissue around
+    it moved), the ends where they were."""
+    step = length / (per_fibre - 1)
+    points, springs, rest = lattice(3, 3, per_fibre, spacing=(2.0, 2.0, step))
+    n = len(points)
+    row, col, index = (a.ravel() for a in np.meshgrid(np.arange(3), np.arange(3),
+                                                        np.arange(per_fibre), indexing="ij"))
+    boundary = (row != 1) | (col != 1) | (index == 0) | (index == per_fibre - 1)
+    posed = points.copy()
+    u = points[:, 2] / length
+    posed[:, 0] += bend * np.sin(np.pi * u)
+    model = S.MSSModel(["slab"], np.array([0, n]), posed,
+                       (index == 0) | (index == per_fibre - 1), np.ones(n), boundary,
+                       np.zeros(n), row * 3 + col, index, springs, rest,
+                       np.full(len(rest), 10.0), np.full(len(rest), 0.5),
+                       np.stack([row, col], 1), points)
+    return model
+
+
+def test_stiffness_per_particle_is_the_ratio_at_the_reference_resolution_and_scales():
+    ratio = 0.02
+    coarse, fine = slab(REFERENCE_PARTICLES), slab(2 * REFERENCE_PARTICLES - 1)
+    k = tissue_stiffness(coarse, np.arange(len(coarse.fixed)), coarse.fixed, ratio)
+    assert np.all(k[coarse.fixed] == 0.0)
+    np.testing.assert_allclose(k[~coarse.fixed], ratio * 10.0)
+    # twice the fibre steps: a quarter of the stiffness per particle
+    k_fine = tissue_stiffness(fine, np.arange(len(fine.fixed)), fine.fixed, ratio)
+    np.testing.assert_allclose(k_fine[~fine.fixed], ratio * 10.0 / 4.0)
+    assert not tissue_stiffness(coarse, np.arange(len(coarse.fixed)), coarse.fixed, 0.0).any()
+    # in the solver's order
+    prep = S.prepare(fine)
+    ordered = tissue_stiffness(fine, prep.order, prep.fixed, ratio)
+    np.testing.assert_array_equal(ordered, k_fine[prep.order])
+
+
+def test_quasi_static_matches_scipy_minimiser_of_the_energy_with_tissue():
+    model, bone = chain_on_a_ball()
+    ratio = 0.05
+    prep = S.prepare(model)
+    weight = DEFAULT_CONTACT_WEIGHT * Q.preconditioner(model, prep).stiffest
+    result = Q.solve(model, *bone, prepared=prep, settings=settings(
+        tolerance=1e-9, iterations=5000, projection_passes=0, connective_tissue=ratio))
+    assert result.converged and result.collided.any()
+    n = len(model.fixed)
+    expected = minimise_reference(model, bone, weight,
+                                  tissue_stiffness(model, np.arange(n), model.fixed, ratio))
+    untethered = minimise_reference(model, bone, weight)
+    np.testing.assert_allclose(result.positions, expected, atol=1e-5)
+    # the tissue changed the answer: it held the chain nearer its posed place
+    posed = model.positions
+    assert (np.linalg.norm(expected - posed, axis=1).mean()
+            < np.linalg.norm(untethered - posed, axis=1).mean() - 0.05)
+
+
+@pytest.fixture(scope="module")
+def bent():
+    """The slab at the reference resolution posed with its middle lifted 6 mm."""
+    return slab(REFERENCE_PARTICLES, bend=6.0)
+
+
+def test_net_force_with_tissue_is_below_the_tolerance_equivalent(bent):
+    ratio, tolerance = 0.05, 1e-4
+    result = solver.solve(bent, settings=settings(tolerance=tolerance, iterations=5000,
+                                                 connective_tissue=ratio))
+    assert result.converged
+    n = len(bent.fixed)
+    k = tissue_stiffness(bent, np.arange(n), bent.fixed, ratio)
+    force = (reference_forces(bent, result.positions, DEFAULT_BULK_MODULUS)
+             - k[:, None] * (result.positions - bent.positions))
+    free = ~bent.fixed
+    diagonal = np.bincount(bent.springs.ravel(), np.repeat(bent.stiffness, 2))
+    bound = 2 * (diagonal.max() + k.max()) * tolerance
+    assert np.linalg.norm(force[free], axis=1).max() < bound
+    # not trivially: the springs alone pull hard there, and the tissue carries a share
+    springs_only = reference_forces(bent, result.positions, DEFAULT_BULK_MODULUS)
+    assert np.linalg.norm(springs_only[free], axis=1).max() > 10 * bound
+    assert 1.0 < result.tissue_share[0] < 100.0
+
+
+def test_both_methods_reach_the_same_equilibrium_with_tissue(bent):
+    ratio = 0.05
+    static = solver.solve(bent, settings=settings(tolerance=1e-5, iterations=5000,
+                                                 connective_tissue=ratio))
+    relaxed = solver.solve(bent, settings=settings(
+        METHOD_RELAXATION, iterations=20000, termination=TERMINATION_THRESHOLD,
+        displacement_threshold=1e-7, connective_tissue=ratio))
+    assert relaxed.stopped_by == TERMINATION_THRESHOLD
+    assert np.linalg.norm(static.positions - relaxed.positions, axis=1).max() < 0.01
+    # and the tissue moved it: without it the relaxation goes elsewhere
+    free = solver.solve(bent, settings=settings(
+        METHOD_RELAXATION, iterations=20000, termination=TERMINATION_THRESHOLD,
+        displacement_threshold=1e-7))
+    assert np.linalg.norm(free.positions - relaxed.positions, axis=1).max() > 0.5
+
+
+@pytest.mark.parametrize("method", [METHOD_QUASI_STATIC, METHOD_RELAXATION])
+def test_model_at_rest_stays_at_rest_with_tissue(method):
+    model = slab(REFERENCE_PARTICLES)         # posed = rest: springs and tissue at rest
+    result = solver.solve(model, settings=settings(method, iterations=50,
+                                                  connective_tissue=0.05))
+    np.testing.assert_allclose(result.positions, model.positions, atol=1e-9)
+    assert not result.tissue_share.any()
+
+
+def middle_fibre(per_fibre, ratio):
+    """The slab's middle fibre (per_fibre, 3) mm after the quasi-static solve of its 6 mm
+    bend with tissue ``ratio``."""
+    model = slab(per_fibre, bend=6.0)
+    result = solver.solve(model, settings=settings(tolerance=1e-5, iterations=5000,
+                                                  connective_tissue=ratio))
+    assert result.converged
+    middle = model.fibre_id == 4
+    return result.positions[middle][np.argsort(model.fibre_index[middle])]
+
+
+def test_same_muscle_at_two_resolutions_gives_the_same_shape():
+    """The tissue scaled by the square of the fibre step keeps the shape: the slab's middle
+    fibre at N = 20 and N = 39 (fibre steps halved) lies within 0.1 mm where the springs and
+    the tissue share the load (0.05 mm measured; held as hard per particle at both
+    resolutions, i.e. without the scaling, 1.5 mm)."""
+    ratio = 0.002
+    coarse = middle_fibre(REFERENCE_PARTICLES, ratio)
+    fine = middle_fibre(2 * REFERENCE_PARTICLES - 1, ratio)
+    lift = np.abs(coarse[:, 0] - 2.0).max()
+    assert 1.0 < lift < 4.0          # bent, far less than the posed 6 mm
+    # the coarse particles are every other fine one
+    assert np.linalg.norm(coarse - fine[::2], axis=1).max() < 0.1
+    unscaled = middle_fibre(2 * REFERENCE_PARTICLES - 1, 4 * ratio)
+    assert np.linalg.norm(coarse - unscaled[::2], axis=1).max() > 1.0
+
+
+def test_tissue_share_is_the_tissue_force_over_the_spring_force(bent):
+    n = len(bent.fixed)
+    moved = bent.positions.copy()
+    moved[~bent.fixed] += [0.3, 0.0, 0.0]
+    k = tissue_stiffness(bent, np.arange(n), bent.fixed, 0.1)
+    d = moved[bent.springs[:, 1]] - moved[bent.springs[:, 0]]
+    tension = np.abs(bent.stiffness * (np.linalg.norm(d, axis=1) - bent.rest_length)).sum()
+    expected = 100.0 * (k * 0.3).sum() / tension
+    assert tissue_share(bent, moved, 0.1)[0] == pytest.approx(expected, rel=1e-12)
+    assert tissue_share(bent, moved, 0.0)[0] == 0.0
+
+
+@pytest.mark.parametrize("method", [METHOD_QUASI_STATIC, METHOD_RELAXATION])
+def test_negative_or_infinite_tissue_is_refused(bent, method):
+    for value in (-0.1, np.inf):
+        with pytest.raises(MuscleMSSError, match="connective tissue"):
+            solver.solve(bent, settings=settings(method, connective_tissue=value))
+
+
+def test_filter_property_reaches_the_solve_and_reports_the_share(small_scene):
+    """``ConnectiveTissue`` on the MSS Collision Solver: 0 by default (no share), and a ratio
+    moves the answer toward the posed particles and reports each muscle's share."""
+    from muscle_mss.filters import MSSCollisionSolver
+    from muscle_mss.filters import array_names as A
+    from muscle_mss.filters import vtk_arrays as V
+    from muscle_mss.core.settings import DEFAULT_CONNECTIVE_TISSUE
+    from test_filter_solver import posed_at
+    from test_quasi_static import filter_solve, points
+
+    times = small_scene.motion.times
+    model, bones = posed_at(small_scene, times[len(times) // 3])
+    posed = points(model)
+    moved, shares = [], []
+    for ratio in (None, 0.03):
+        solver = MSSCollisionSolver()
+        solver.SetIterations(60)
+        if ratio is None:
+            assert solver.GetConnectiveTissue() == DEFAULT_CONNECTIVE_TISSUE == 0.0
+        else:
+            solver.SetConnectiveTissue(ratio)
+        out, _ = filter_solve(solver, model, bones)
+        moved.append(np.linalg.norm(points(out) - posed, axis=1).mean())
+        shares.append([V.field(block, A.TISSUE_SHARE_PCT) for _, block in V.blocks(out)])
+    assert not any(shares[0]) and all(0.0 < s < 100.0 for s in shares[1])
+    assert moved[1] < moved[0]
