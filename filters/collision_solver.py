@@ -27,17 +27,19 @@ Two methods (property ``Method``): ``paper relaxation`` (the default,
 :mod:`muscle_mss.core.relaxation`) runs the paper's explicit iterations; ``quasi-static``
 (:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the same model to
 ``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
-is not the default because on the demo thigh at N = 20 it needs about 1,950 iterations to
-reach its tolerance at the walking pose and does not reach it in 3,000 at the most flexed one
-(``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why).
+is not the default: on the demo thigh at N = 20, even with ``ConnectiveTissue`` 0.1 (203
+iterations at the walking pose), its stopping test does not fire in 1,000 iterations at the most
+flexed pose (``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why).
 The quasi-static table
 adds a ``residual`` column (mm, per iteration); both tables carry field data ``method`` and
 ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap above
 ``PenetrationTolerance``, or when the paper's displacement threshold fired). An unconverged
-quasi-static solve prints a warning (ParaView's output messages). Warm start (``WarmStart``):
-the filter keeps its last quasi-static solution; asked for another pose of the same model with
-the same properties, it starts from the posed particles plus the last solution's displacement
-from its own posed particles instead of from the posed state. Bones (``BoneContact``, both
+quasi-static solve prints a warning (ParaView's output messages). Every solve starts from the
+posed state, so a time point's answer does not depend on the times solved before it (slider
+jumps, ``--time``, MPI ranks, a reopened state file); with ``WarmStart`` on, the filter keeps
+its last quasi-static solution and, asked for another pose of the same model with the same
+properties, starts from the posed particles plus the last solution's displacement from its own
+posed particles (faster along a motion, but the answer then depends on the order). Bones (``BoneContact``, both
 methods, the iterations and the final collision passes): as solids by default
 (:func:`solid_bones`: each bone's signed distance field, sampled once per bone shape by
 :func:`~muscle_mss.filters.bone_sets.bone_solids`; a muscle sphere is pushed out along the
@@ -182,14 +184,14 @@ class MSSCollisionSolver(MuscleFilter):
     PROPERTIES = (
         Property("Method", "enum", DEFAULT_METHOD,
                  "quasi-static: solve for the static equilibrium of the springs, volume "
-                 "pressure, fixed tendon particles and contacts to Tolerance (energy "
-                 "minimisation by L-BFGS on a spring matrix factorised once per model, contacts "
-                 "as penalties, then the final collision passes); TimeStep, Drag and "
-                 "DisplacementThreshold do not apply; on the demo thigh it needs about 2,000 "
-                 "iterations at the walking pose and more than 3,000 at the most flexed "
-                 "one. paper "
-                 "relaxation (the default): the paper's explicit iterations (mass-spring step, "
-                 "collision response) with the terminations below.",
+                 "pressure, connective tissue, fixed tendon particles and contacts to Tolerance "
+                 "(energy minimisation by L-BFGS on a spring matrix factorised once per model, "
+                 "contacts as penalties, then the final collision passes); TimeStep, Drag and "
+                 "DisplacementThreshold do not apply. Give it ConnectiveTissue (0.1 converges "
+                 "the demo thigh's walking pose in about 200 iterations; without tissue it "
+                 "needs about 2,000, and the most flexed pose more than 1,000 either way). "
+                 "paper relaxation (the default): the paper's explicit iterations (mass-spring "
+                 "step, collision response) with the terminations below.",
                  choices=METHODS, group="Method"),
         Property("Tolerance", "double", DEFAULT_TOLERANCE,
                  "Quasi-static: the solve has converged when no particle moves more than this "
@@ -198,11 +200,14 @@ class MSSCollisionSolver(MuscleFilter):
                  "PenetrationTolerance. Iterations caps the steps; with Termination 'time "
                  "budget' so does TimeBudget. An unconverged solve prints a warning.",
                  minimum=0.0, group="Method"),
-        Property("WarmStart", "bool", True,
+        Property("WarmStart", "bool", False,
                  "Quasi-static: start from the last solution of this filter (its displacement "
                  "from its posed particles added to the new posed particles) when the model "
                  "and the properties are the same and only the pose changed (the next time "
-                 "step); off: always start from the posed particles.",
+                 "step). Off (the default): always start from the posed particles, so that the "
+                 "answer at a time does not depend on which times were solved before (contacts "
+                 "make the equilibrium not unique: a warm start can land in a neighbouring "
+                 "minimum); on is faster along a motion but its results depend on the order.",
                  group="Method"),
         Property("Termination", "enum", TERMINATION_ITERATIONS,
                  "When to stop. iterations: after Iterations iterations. displacement threshold: "

@@ -150,8 +150,7 @@ def test_mpi_batch_equals_the_serial_batch(small_scene_dir, tmp_path):
     import csv
     from paraview_support import run
 
-    # the paper method: every time point from the posed state, so ranks give bitwise the
-    # serial result (the quasi-static default warm starts within each rank's block)
+    # every time point from the posed state, so ranks give bitwise the serial result
     serial, parallel = tmp_path / "serial", tmp_path / "mpi"
     options = ["--iterations", ITERATIONS, "--method", "paper"]
     run(["pvpython", "-m", "muscle_mss.plugin.batch", small_scene_dir, serial, *options])
