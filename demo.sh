@@ -3,5 +3,5 @@
 # embedded demo thigh scene. Output folder: the first argument, default ./demo_out.
 set -euo pipefail
 cd "$(dirname "$0")"
-./setup.sh
+./setup.sh --background
 exec .venv/bin/muscle-mss demo "${1:-demo_out}"

@@ -33,8 +33,9 @@ from muscle_mss.core.errors import Interrupted, MuscleMSSError
 from .properties import Property
 
 SDDP = vtkStreamingDemandDrivenPipeline
-# the folder holding core/ and filters/: frames of muscle-mss in a traceback start with it
-_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+# the folder holding core/ and filters/: frames of muscle-mss in a traceback start with it (real
+# paths: the installed package src/muscle_mss/ links to those folders)
+_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.realpath(__file__))) + os.sep
 
 
 @dataclass(frozen=True)
@@ -246,7 +247,7 @@ def wrapped_error(label: str, err: BaseException) -> MuscleMSSError:
     its type, its message (numpy's MemoryError says the size it asked for) and the line of
     muscle-mss it came from, so that the user sees which filter failed and why."""
     frames = [f for f in traceback.extract_tb(err.__traceback__)
-              if os.path.abspath(f.filename).startswith(_PACKAGE_ROOT)]
+              if os.path.realpath(f.filename).startswith(_PACKAGE_ROOT)]
     place = ""
     if frames:
         place = f" at {os.path.basename(frames[-1].filename)}:{frames[-1].lineno}"

@@ -7,11 +7,11 @@ entry points, never by the filters themselves (the warm-up runs them): the CLI a
 before they solve, the ParaView proxies (``muscle_mss.plugin.paraview_proxies``) before a filter
 executes, and ``muscle_mss.filters`` when a script takes a filter class from it. When the cache
 is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`, compiles every kernel
-by running tiny solves through the filter chain (each collision structure and blending, so that
-a later choice compiles nothing either) and records the cache as warm. ``./setup.sh`` runs it
-for the venv and Debian's Python::
+by running tiny solves through the filter chain (the default settings first, then each other
+method, collision structure and blending, so that a later choice compiles nothing either) and
+records the cache as warm. ``./setup.sh`` runs it for the venv, then for Debian's Python::
 
-    python -m muscle_mss.filters.warm_up
+    python -m muscle_mss.filters.warm_up [--quiet]
 """
 from __future__ import annotations
 
@@ -25,18 +25,24 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 
 from muscle_mss.core import kernel_cache
 from muscle_mss.core.pose import LINEAR
-from muscle_mss.core.settings import METHOD_QUASI_STATIC, STRUCTURE_BVH, TERMINATION_THRESHOLD
+from muscle_mss.core.settings import (DEFAULT_METHOD, METHOD_RELAXATION, METHODS, STRUCTURE_BVH,
+                                      TERMINATION_THRESHOLD)
 
 from . import motion_run
 
-VARIANTS = (
-    {"Iterations": 3},
-    {"Iterations": 3, "CollisionStructure": STRUCTURE_BVH, "Blending": LINEAR,
-     "Termination": TERMINATION_THRESHOLD},
-    {"Iterations": 3, "Method": METHOD_QUASI_STATIC},
+DEFAULT_VARIANTS = ({"Iterations": 3},)
+"""The default settings (the method :mod:`muscle_mss.core.settings` makes the default): the
+kernels a first run uses, compiled before any other."""
+OTHER_VARIANTS = tuple({"Iterations": 3, "Method": method} for method in METHODS
+                       if method != DEFAULT_METHOD) + (
+    {"Iterations": 3, "Method": METHOD_RELAXATION, "CollisionStructure": STRUCTURE_BVH,
+     "Blending": LINEAR, "Termination": TERMINATION_THRESHOLD},
 )
+"""The other methods, the octree BVH, linear blending and the relaxation's threshold
+termination: compiled after the defaults, so that a later choice compiles nothing either."""
+VARIANTS = DEFAULT_VARIANTS + OTHER_VARIANTS
 """Filter settings whose tiny solves together call every kernel with the argument types of a
-real run (property values select kernels, not argument types)."""
+real run (property values select kernels, not argument types), the defaults first."""
 _settled = {"done": False}
 """Whether this process has found the kernels compiled or tried to compile them: later calls
 return at once (ParaView asks before every filter update; a failed warm-up is not retried)."""
@@ -117,9 +123,11 @@ def output_window_notice(text: str) -> None:
     vtkOutputWindow.GetInstance().DisplayWarningText(f"Muscle MSS: {text}\n")
 
 
-def main() -> int:
-    """``python -m muscle_mss.filters.warm_up``: compile (or find compiled) every kernel."""
-    if not ensure_compiled(stderr_notice):
+def main(argv=None) -> int:
+    """``python -m muscle_mss.filters.warm_up [--quiet]``: compile (or find compiled) every
+    kernel; ``--quiet`` says nothing when they are compiled already (``./setup.sh`` run again)."""
+    quiet = "--quiet" in (sys.argv[1:] if argv is None else argv)
+    if not ensure_compiled(stderr_notice) and not quiet:
         print(f"numeric kernels already compiled in {kernel_cache.kernel_cache_dir()}",
               file=sys.stderr)
     return 0

@@ -26,3 +26,18 @@ def small_scene_dir(tmp_path_factory, small_scene):
     folder = tmp_path_factory.mktemp("small_scene")
     write_scene(small_scene, folder)
     return folder
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels():
+    """This Python's kernels compiled before the first test, outside any test's timeout:
+    ./test.sh's ./setup.sh has compiled them into the user's kernel cache, which the tests and
+    the processes they start load them from; a pytest run without it compiles them here, in a
+    process of its own (the warm-up's filter chain leaves nothing behind in this one)."""
+    import subprocess
+    import sys
+
+    from muscle_mss.core import kernel_cache
+    if not kernel_cache.is_warm():
+        subprocess.run([sys.executable, "-m", "muscle_mss.filters.warm_up", "--quiet"],
+                       check=True)

@@ -1,8 +1,10 @@
 """Running Debian's ParaView (pvpython, pvbatch, paraview under xvfb) from the tests.
 
 The child processes get ``plugin/shim`` on PYTHONPATH (the 5.11 ``getargspec`` fix, and this
-checkout importable as ``muscle_mss``), the plugin folder on PV_PLUGIN_PATH, and a Numba cache of
-their own (ParaView's numba 0.56 and the venv's numba must not share one).
+checkout importable as ``muscle_mss``) and the plugin folder on PV_PLUGIN_PATH. They load their
+kernels from the user's kernel cache, as ParaView does outside the tests (the folder is keyed by
+Python, Numba and NumPy: ParaView's numba 0.56 has its own beside the venv's), compiled there
+once before the first of them runs (:func:`warm_paraview_python`), not inside a test's timeout.
 """
 import atexit
 import json
@@ -25,10 +27,26 @@ def paraview_env(**extra) -> dict:
                                   if p != venv_bin)
     env["PYTHONPATH"] = str(SHIM)
     env["PV_PLUGIN_PATH"] = str(PLUGIN_DIR)
-    env["NUMBA_CACHE_DIR"] = str(REPO / ".numba-cache" / "debian")
     env["PYTHONUNBUFFERED"] = "1"
     env.update({k: str(v) for k, v in extra.items()})
     return env
+
+
+_WARM: list = []  # [True] once ParaView's Python's kernels were found or made compiled
+
+
+def warm_paraview_python() -> None:
+    """Compile ParaView's Python's kernels into the user's kernel cache, or find them compiled
+    (a second or two: ./test.sh's ./setup.sh has compiled them), once per test process and with
+    no timeout, so that no ParaView command's timeout is spent compiling."""
+    if _WARM:
+        return
+    proc = subprocess.run(["pvpython", "-m", "muscle_mss.filters.warm_up", "--quiet"], cwd=REPO,
+                          env=paraview_env(), capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise AssertionError(f"pvpython -m muscle_mss.filters.warm_up exited {proc.returncode}\n"
+                             f"{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
+    _WARM.append(True)
 
 
 _X_SERVER: list = []  # the one Xvfb of this test process: [Popen, display]
@@ -80,6 +98,7 @@ def run(command, timeout=600, cwd=REPO, **extra_env) -> subprocess.CompletedProc
     ParaView aborts because that server refused the connection (seen once on CI with a server
     that had just served the previous command), the server is restarted and the command run
     once more: that is the test machine's fault, not the command's."""
+    warm_paraview_python()
     headless = _headless([str(c) for c in command], extra_env)
     proc = subprocess.run(headless, cwd=cwd, env=paraview_env(**extra_env),
                           capture_output=True, text=True, timeout=timeout)

@@ -168,8 +168,9 @@ def test_mpi_batch_equals_the_serial_batch(small_scene_dir, tmp_path):
 
 def _paraview_kernels_unmarked(folder):
     """A copy in ``folder`` of ParaView's Python's kernel cache, every kernel compiled but not
-    recorded as such (its warm markers removed): a run in it goes through the cold path (the
-    notice, the warm-up) in seconds. Returns the removed markers' paths."""
+    recorded as such (this checkout's warm marker removed; the user's cache folder may hold
+    other checkouts' too): a run in it goes through the cold path (the notice, the warm-up) in
+    seconds. Returns the removed marker's path in a list."""
     import glob
     import os
     import shutil
@@ -178,12 +179,13 @@ def _paraview_kernels_unmarked(folder):
 
     run(["pvpython", "-m", "muscle_mss.filters.warm_up"])  # ParaView's Python's own cache
     digest = kernel_cache.sources_digest(os.path.join(REPO, "core"))
-    (own,) = glob.glob(str(REPO / ".numba-cache" / "debian" / f"numba-{digest}-*numba0.56*"))
+    (own,) = glob.glob(os.path.join(kernel_cache.base_cache_dir(),
+                                    f"numba-{digest}-*numba0.56*"))
     shutil.copytree(own, folder / os.path.basename(own))
-    markers = list(folder.rglob(f"{kernel_cache.WARM_PREFIX}*.json"))
-    for marker in markers:
-        marker.unlink()
-    return markers
+    marker = folder / os.path.basename(own) / os.path.basename(
+        kernel_cache.warm_marker(str(REPO / "core")))
+    marker.unlink()
+    return [marker]
 
 
 def test_mpi_ranks_share_one_compile(small_scene_dir, tmp_path):

@@ -102,3 +102,21 @@ def test_a_script_taking_a_filter_says_it_through_the_vtk_output_window(warm_cac
     assert [r.returncode for r in runs] == [0, 0], runs[0].stderr + runs[1].stderr
     assert runs[0].stderr.count("Muscle MSS: " + NOTICE) == 1
     assert NOTICE not in runs[1].stderr
+
+
+def test_the_defaults_come_first_then_every_other_method():
+    """The kernels of a run with the default settings (whichever method core.settings makes the
+    default) compile before any other; every method is warmed."""
+    from muscle_mss.core.settings import DEFAULT_METHOD, METHODS
+    assert warm_up.VARIANTS[:len(warm_up.DEFAULT_VARIANTS)] == warm_up.DEFAULT_VARIANTS
+    assert all(set(v) == {"Iterations"} for v in warm_up.DEFAULT_VARIANTS)
+    assert {v.get("Method", DEFAULT_METHOD) for v in warm_up.VARIANTS} == set(METHODS)
+
+
+def test_quiet_says_nothing_when_the_kernels_are_compiled(monkeypatch, capsys):
+    """``./setup.sh`` runs the warm-up with ``--quiet``: silent when there is nothing to do."""
+    monkeypatch.setattr(warm_up, "ensure_compiled", lambda report: False)
+    assert warm_up.main(["--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+    assert warm_up.main([]) == 0
+    assert "already compiled" in capsys.readouterr().err
