@@ -1,17 +1,22 @@
-"""Benchmark of the quasi-static solver (core/quasi_static/) on the full demo thigh (issue 11).
+"""Benchmark of the quasi-static solver (core/quasi_static/) with the connective tissue, on both
+demo scenes: the thigh (13 muscles) at its walking pose (t = 0.35 s, as bench_solver.py) and
+most flexed pose (t = 0.75 s), the elbow (7 muscles) at 70 and 130 degrees of flexion; lattice-26,
+the filter's bone spheres and bones as solids.
 
-For the walking pose (a third into the motion, t = 0.35 s, as bench_solver.py) and the most
-flexed pose (t = 0.75 s), at N = 20 and 80 particles per fibre (13 muscles x 64 fibres,
-lattice-26, the filter's bone spheres and bone solids): iterations and seconds of the default
-solve (Tolerance 1e-3 mm, bones as solids, capped), whether it converged, the distance of its
-particles to a 10x tighter solve (Tolerance 1e-4 mm, a larger cap) mean / max mm, the same for
-the solve against the bones' sphere sets and for the paper relaxation at 500 iterations. Then
-the whole walk (21 time points, N = 20) solved in time order cold (from each posed state) and
-warm (from the last solution carried by the pose change, as the filter does). Machine and
-load in the table; written to benchmarks/results/quasi_static.md.
+Table 1, per scene, pose and N (particles per fibre), at ConnectiveTissue ``--ratio``:
+iterations and seconds of the solve (Tolerance 1e-3 mm, cap ``--cap``), whether it converged,
+its last step, the distance of its particles to a 10x tighter solve, to the solve without
+tissue at the same cap and to the paper relaxation (500 iterations, no tissue), mean / max mm,
+and the tissue's share of each muscle's load (median / max %).
+Table 2, the ratio sweep (``--sweep``) at N = 20: iterations, seconds, converged, distance to
+the untethered solve and the volume error of the muscles' cages (mean / max %).
+Table 3, the thigh walk (21 time points, N = 20, ``--ratio``) solved in time order cold (each
+from its posed state) and warm (from the last solution carried by the pose change): seconds,
+iterations, converged, and how far the two answers are apart at the most flexed pose.
+Machine and load in the tables; written to benchmarks/results/quasi_static.md.
 
-    python benchmarks/bench_quasi_static.py [--sizes 20 80] [--cap 1000] [--tight-cap 3000]
-                                            [--walk-cap 300]
+    python benchmarks/bench_quasi_static.py [--scenes thigh arm] [--sizes 20 80]
+        [--ratio 0.01] [--sweep 0 0.001 0.003 0.01 0.03] [--cap 1500] [--walk-cap 300]
 """
 from __future__ import annotations
 
@@ -22,10 +27,10 @@ import time
 
 import numpy as np
 
-from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import solver as S
-from muscle_mss.core.model import prepare
+from muscle_mss.core.demo_arm import demo_arm_scene, flexion_angles
 from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.model import prepare
 from muscle_mss.core.settings import DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
@@ -35,13 +40,14 @@ from muscle_mss.filters.scene_io import write_scene
 
 from bench_solver import machine, write_result
 
-POSES = (("walking", 0.35), ("most flexed", 0.75))
-
+THIGH_POSES = (("walking", 0.35), ("most flexed", 0.75))
+ARM_ANGLES = (70.0, 130.0)
 
 
 def quasi_static(**values) -> SolverSettings:
     """Quasi-static settings from flat keywords (:meth:`SolverSettings.build`)."""
     return SolverSettings.build(method=METHOD_QUASI_STATIC, **values)
+
 
 def workload(pipeline, t):
     """The solver's inputs at time ``t`` as the filter builds them: the model, its bone spheres
@@ -59,105 +65,168 @@ def distance(a, b):
     return float(d.mean()), float(d.max())
 
 
+def cage_volume_error(prep, positions):
+    """(mean, max) % of the muscles' cage volume change from rest at ``positions`` (n, 3)."""
+    x = np.asarray(positions)[prep.order]
+    ptr, triangles, rest = prep.cages.arrays
+    errors = []
+    for m in range(len(ptr) - 1):
+        tri = triangles[ptr[m]:ptr[m + 1]]
+        if len(tri):
+            a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+            volume = np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0
+            errors.append(100.0 * abs(volume / rest[m] - 1.0))
+    return float(np.mean(errors)), float(np.max(errors))
+
+
+def scenes(names):
+    """(scene name, scene, poses as (label, t)) for the demo scenes ``names``."""
+    for name in names:
+        if name == "thigh":
+            yield name, demo_scene("full"), THIGH_POSES
+        else:
+            scene = demo_arm_scene("full")
+            angles = flexion_angles(scene.motion.times)
+            yield name, scene, tuple((f"{a:.0f} deg", float(scene.motion.times[
+                int(np.argmin(np.abs(angles - a)))])) for a in ARM_ANGLES)
+
+
+def timed(model, bones, solids, prepared, settings):
+    tick = time.perf_counter()
+    result = S.solve(model, *bones, prepared=prepared, bone_solids=solids, settings=settings)
+    return result, time.perf_counter() - tick
+
+
+def pose_row(model, bones, solids, prepared, args):
+    """Table 1's measurements of one pose."""
+    result, seconds = timed(model, bones, solids, prepared,
+                            quasi_static(iterations=args.cap, connective_tissue=args.ratio))
+    tight, _ = timed(model, bones, solids, prepared, quasi_static(
+        iterations=3 * args.cap, tolerance=DEFAULT_TOLERANCE / 10,
+        connective_tissue=args.ratio))
+    free, _ = timed(model, bones, solids, prepared,
+                    quasi_static(iterations=args.cap, connective_tissue=0.0))
+    paper, _ = timed(model, bones, solids, prepared, SolverSettings(connective_tissue=0.0))
+    share = result.tissue_share
+    return (result.iterations, seconds, result.converged, float(result.residual[-1]),
+            *distance(result.positions, tight.positions), tight.converged,
+            *distance(result.positions, free.positions), free.converged,
+            *distance(result.positions, paper.positions),
+            float(np.median(share)), float(np.max(share)), os.getloadavg()[0])
+
+
+def sweep_rows(model, bones, solids, prepared, args):
+    """Table 2's rows of one pose, the first ratio being the reference for the distances."""
+    rows, untethered = [], None
+    for ratio in args.sweep:
+        result, seconds = timed(model, bones, solids, prepared,
+                                quasi_static(iterations=args.cap, connective_tissue=ratio))
+        untethered = result if untethered is None else untethered
+        rows.append((ratio, result.iterations, seconds, result.converged,
+                     *distance(result.positions, untethered.positions),
+                     *cage_volume_error(prepared, result.positions), os.getloadavg()[0]))
+    return rows
+
+
+def walk_rows(scene, folder, args):
+    """Table 3: the thigh walk cold and warm, and the two answers' distance at the most
+    flexed pose."""
+    pipeline = build_pipeline(folder, {"ParticlesPerFibre": 20})
+    inputs = [workload(pipeline, float(t)) for t in scene.motion.times]
+    prepared = prepare(inputs[0][0])
+    settings = quasi_static(iterations=args.walk_cap, connective_tissue=args.ratio)
+    flexed = int(np.argmin(np.abs(scene.motion.times - THIGH_POSES[1][1])))
+    rows, answers = [], []
+    for mode in ("cold", "warm"):
+        last, iterations, converged = None, 0, 0
+        tick = time.perf_counter()
+        for k, (model, bones, solids) in enumerate(inputs):
+            start = None if (mode == "cold" or last is None) else (
+                model.positions + (last[1] - last[0]))
+            result = S.solve(model, *bones, settings=settings, prepared=prepared, start=start,
+                             bone_solids=solids)
+            last = (model.positions, result.positions)
+            iterations += result.iterations
+            converged += int(result.converged)
+            if k == flexed:
+                answers.append(result.positions)
+        rows.append((mode, len(inputs), time.perf_counter() - tick, iterations, converged,
+                     os.getloadavg()[0]))
+        print(rows[-1], flush=True)
+    return rows, distance(*answers)
+
+
 def main(args):
-    scene = demo_scene("full")
-    folder = tempfile.mkdtemp(prefix="bench_qs_scene_")
-    write_scene(scene, folder)
-    rows, walk_rows = [], []
-    for n in args.sizes:
-        pipeline = build_pipeline(folder, {"ParticlesPerFibre": n})
-        prepared = None
-        for label, t in POSES:
-            model, bones, solids = workload(pipeline, t)
-            if prepared is None:
+    yes = {True: "yes", False: "no"}
+    table1, table2, walk = [], [], None
+    for name, scene, poses in scenes(args.scenes):
+        folder = tempfile.mkdtemp(prefix=f"bench_qs_{name}_")
+        write_scene(scene, folder)
+        for n in args.sizes:
+            pipeline = build_pipeline(folder, {"ParticlesPerFibre": n})
+            for label, t in poses:
+                model, bones, solids = workload(pipeline, t)
                 prepared = prepare(model)
-                tick = time.perf_counter()
-                Q.preconditioner(model, prepared)
-                factor_seconds = time.perf_counter() - tick
-                Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                        settings=quasi_static(iterations=2))   # compiled, warm
-            tick = time.perf_counter()
-            default = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                              settings=quasi_static(iterations=args.cap))
-            seconds = time.perf_counter() - tick
-            tick = time.perf_counter()
-            spheres = Q.solve(model, *bones, prepared=prepared,
-                              settings=quasi_static(iterations=args.cap))
-            sphere_seconds = time.perf_counter() - tick
-            tight = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                            settings=quasi_static(tolerance=DEFAULT_TOLERANCE / 10,
-                                                           iterations=args.tight_cap))
-            tick = time.perf_counter()
-            paper = S.solve(model, *bones, prepared=prepared)
-            paper_seconds = time.perf_counter() - tick
-            row = (n, label, t, default.iterations, seconds, default.converged,
-                   float(default.residual[-1]), *distance(default.positions, tight.positions),
-                   tight.iterations, tight.converged, spheres.iterations, sphere_seconds,
-                   spheres.converged, *distance(spheres.positions, tight.positions),
-                   paper_seconds, *distance(paper.positions, tight.positions), factor_seconds,
-                   os.getloadavg()[0])
-            rows.append(row)
-            print(row, flush=True)
-    if args.walk_cap:
-        pipeline = build_pipeline(folder, {"ParticlesPerFibre": 20})
-        inputs = [workload(pipeline, float(t)) for t in scene.motion.times]
-        prepared = prepare(inputs[0][0])
-        Q.preconditioner(inputs[0][0], prepared)
-        for mode in ("cold", "warm"):
-            settings = quasi_static(iterations=args.walk_cap)
-            last = None
-            iterations, converged = 0, 0
-            tick = time.perf_counter()
-            for model, bones, solids in inputs:
-                start = None if (mode == "cold" or last is None) else (
-                    model.positions + (last[1] - last[0]))
-                result = Q.solve(model, *bones, settings=settings, prepared=prepared,
-                                 start=start, bone_solids=solids)
-                last = (model.positions, result.positions)
-                iterations += result.iterations
-                converged += int(result.converged)
-            walk_rows.append((mode, len(inputs), time.perf_counter() - tick, iterations,
-                              converged, os.getloadavg()[0]))
-            print(walk_rows[-1], flush=True)
+                S.solve(model, *bones, prepared=prepared, bone_solids=solids,
+                        settings=quasi_static(iterations=2))        # compiled, warm
+                table1.append((name, n, label, t, *pose_row(model, bones, solids, prepared,
+                                                             args)))
+                print(table1[-1], flush=True)
+                if n == 20 and args.sweep:
+                    for row in sweep_rows(model, bones, solids, prepared, args):
+                        table2.append((name, label, *row))
+                        print(table2[-1], flush=True)
+        if name == "thigh" and args.walk_cap:
+            walk = walk_rows(scene, folder, args)
 
     lines = [
-        "# Quasi-static solver benchmark (full demo thigh, issue 11)", "",
+        "# Quasi-static solver with the connective tissue (both demo scenes)", "",
         f"Machine: {machine()}. The machine is shared: the load average (1 min) after "
         "each row is given.", "",
-        f"Default solve: Tolerance {DEFAULT_TOLERANCE} mm, cap {args.cap} iterations, bones "
-        f"as solids (the filter's default). Tighter: Tolerance {DEFAULT_TOLERANCE / 10} mm, "
-        f"cap {args.tight_cap}, solids. Sphere set: the default solve against the bones' "
-        "sphere sets. Distances are per particle to the tighter solve, after the final "
-        "collision passes, mean / max mm. Paper: the paper relaxation at its default 500 "
-        "iterations. Factor: the one-off factorisation per topology (s).", "",
-        "| N | pose | t s | iterations | seconds | converged | last residual mm | "
-        "to tighter | tighter iterations (converged) | sphere set: iterations, seconds "
-        "(converged) | sphere set to tighter | paper s | paper to tighter | factor s | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for (n, label, t, it, sec, conv, res, dm, dx, tit, tconv, sit, ssec, sconv, sm, sx, psec,
-         pm, px, fsec, load) in rows:
-        yes = {True: "yes", False: "no"}
-        lines.append(f"| {n} | {label} | {t:.2f} | {it} | {sec:.2f} | {yes[conv]} | {res:.3g} "
-                     f"| {dm:.3f} / {dx:.2f} | {tit} ({yes[tconv]}) | {sit}, {ssec:.2f} "
-                     f"({yes[sconv]}) | {sm:.3f} / {sx:.2f} | {psec:.2f} | {pm:.3f} / {px:.2f} "
-                     f"| {fsec:.2f} | {load:.2f} |")
-    if walk_rows:
-        lines += ["", f"Whole walk (N = 20, cap {args.walk_cap} iterations per time point, in "
-                  "time order):", "",
-                  "| start | time points | seconds | iterations | converged | load |",
+        f"Table 1: ConnectiveTissue {args.ratio:g}, Tolerance {DEFAULT_TOLERANCE} mm, cap "
+        f"{args.cap} iterations, bones as solids. Tighter: Tolerance "
+        f"{DEFAULT_TOLERANCE / 10} mm, cap {3 * args.cap}. No tissue: the same solve at "
+        "ConnectiveTissue 0. Paper: the paper relaxation, 500 iterations, no tissue. "
+        "Distances per particle, after the final collision passes, mean / max mm. Tissue "
+        "share: its force over the springs', median / max over the muscles.", "",
+        "| scene | N | pose | t s | iterations | seconds | converged | last step mm | "
+        "to tighter (converged) | to no tissue (converged) | to paper | tissue share % | "
+        "load |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for (scene, n, label, t, it, sec, conv, last, tm, tx, tconv, fm, fx, fconv, pm, px,
+         share_median, share_max, load) in table1:
+        lines.append(f"| {scene} | {n} | {label} | {t:.2f} | {it} | {sec:.2f} | {yes[conv]} "
+                     f"| {last:.2g} | {tm:.3f} / {tx:.2f} ({yes[tconv]}) | {fm:.2f} / "
+                     f"{fx:.1f} ({yes[fconv]}) | {pm:.2f} / {px:.1f} | {share_median:.1f} / "
+                     f"{share_max:.1f} | {load:.2f} |")
+    if table2:
+        lines += ["", f"Table 2: the ratio sweep at N = 20 (cap {args.cap}). Distance to the "
+                  f"solve at ConnectiveTissue {args.sweep[0]:g}, mean / max mm; volume error "
+                  "of the muscles' cages (the particles' boundary, not the MVC surface), "
+                  "mean / max %.", "",
+                  "| scene | pose | ratio | iterations | seconds | converged | to untethered | "
+                  "cage volume error % | load |", "|---|---|---|---|---|---|---|---|---|"]
+        for scene, label, ratio, it, sec, conv, dm, dx, vm, vx, load in table2:
+            lines.append(f"| {scene} | {label} | {ratio:g} | {it} | {sec:.2f} | {yes[conv]} "
+                         f"| {dm:.2f} / {dx:.1f} | {vm:.2f} / {vx:.2f} | {load:.2f} |")
+    if walk:
+        rows, (dm, dx) = walk
+        lines += ["", f"Table 3: the thigh walk (N = 20, ConnectiveTissue {args.ratio:g}, cap "
+                  f"{args.walk_cap} iterations per time point, in time order). Cold and warm "
+                  f"answers at the most flexed pose: {dm:.2f} mm mean, {dx:.1f} mm max apart.",
+                  "", "| start | time points | seconds | iterations | converged | load |",
                   "|---|---|---|---|---|---|"]
-        for mode, count, sec, it, conv, load in walk_rows:
+        for mode, count, sec, it, conv, load in rows:
             lines.append(f"| {mode} | {count} | {sec:.1f} | {it} | {conv} | {load:.2f} |")
-        if len(walk_rows) == 2:
-            lines.append("")
-            lines.append(f"Warm / cold seconds: {walk_rows[1][2] / walk_rows[0][2]:.2f}.")
     write_result(lines, "quasi_static.md")
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", choices=("thigh", "arm"),
+                        default=["thigh", "arm"])
     parser.add_argument("--sizes", type=int, nargs="+", default=[20, 80])
-    parser.add_argument("--cap", type=int, default=1000)
-    parser.add_argument("--tight-cap", type=int, default=3000)
+    parser.add_argument("--ratio", type=float, default=1e-2)
+    parser.add_argument("--sweep", type=float, nargs="*", default=[0, 1e-3, 3e-3, 1e-2, 3e-2])
+    parser.add_argument("--cap", type=int, default=1500)
     parser.add_argument("--walk-cap", type=int, default=300)
     main(parser.parse_args())
