@@ -6,7 +6,8 @@ one run folder; run folders are paired by name. For each pair it compares ``summ
 every convergence table without their timing columns (any column whose name contains
 "second"), and every numeric array of every series file (points, point, cell and field data)
 byte for byte, and prints one line per run: the number of arrays and BITWISE SAME, or what
-differs and by how much. Exit status 1 when anything differs.
+differs and by how much, and the columns and arrays only AFTER has (a new output). Exit status 1
+when anything both have differs or AFTER lacks something.
 
     python benchmarks/compare_runs.py BEFORE AFTER
 
@@ -27,12 +28,12 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataReader
 
 
-def csv_rows(path) -> list:
-    """The rows of a CSV file without its timing columns."""
+def csv_columns(path) -> dict:
+    """``{name: values}`` of a CSV file's columns without its timing columns."""
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
-    keep = [i for i, name in enumerate(rows[0]) if "second" not in name]
-    return [[row[i] for i in keep] for row in rows]
+    return {name: [row[i] for row in rows[1:]] for i, name in enumerate(rows[0])
+            if "second" not in name}
 
 
 def series_arrays(vtm) -> dict:
@@ -61,19 +62,23 @@ def series_arrays(vtm) -> dict:
 
 
 def compare_run(before, after) -> tuple:
-    """``(arrays compared, problems)`` of two run folders."""
-    problems = []
+    """``(arrays compared, problems, added)`` of two run folders: ``added`` names the columns
+    and arrays only AFTER has (a new output is not a difference in what both compute)."""
+    problems, added = [], set()
     tables = ["summary.csv"] + [os.path.relpath(path, before) for path in
                                 sorted(glob.glob(os.path.join(before, "convergence", "*.csv")))]
     for table in tables:
-        if csv_rows(os.path.join(before, table)) != csv_rows(os.path.join(after, table)):
+        old, new = (csv_columns(os.path.join(folder, table)) for folder in (before, after))
+        added |= set(new) - set(old)
+        if set(old) - set(new) or any(old[c] != new[c] for c in old):
             problems.append(table)
     count = 0
     for vtm in sorted(glob.glob(os.path.join(before, "series", "*.vtm"))):
         name = os.path.basename(vtm)
         old, new = series_arrays(vtm), series_arrays(os.path.join(after, "series", name))
-        if set(old) != set(new):
-            problems.append(f"{name}: arrays {sorted(set(old) ^ set(new))[:3]} in one run only")
+        added |= {key[2] or key[1] for key in set(new) - set(old)}
+        if set(old) - set(new):
+            problems.append(f"{name}: arrays {sorted(set(old) - set(new))[:3]} missing")
         for key in sorted(set(old) & set(new)):
             count += 1
             a, b = old[key], new[key]
@@ -81,7 +86,7 @@ def compare_run(before, after) -> tuple:
                 gap = (np.abs(a.astype(float) - b.astype(float)).max()
                        if a.shape == b.shape else "shape")
                 problems.append(f"{name} {key}: max difference {gap}")
-    return count, problems
+    return count, problems, added
 
 
 def run_folders(root) -> dict:
@@ -103,10 +108,11 @@ def main(argv=None) -> int:
             print(f"{name}: missing in {after_root}")
             differ = True
             continue
-        count, problems = compare_run(folder, after[name])
+        count, problems, added = compare_run(folder, after[name])
         differ |= bool(problems)
         print(f"{name}: {count} arrays, " + ("BITWISE SAME" if not problems else
-                                              "DIFFERS: " + "; ".join(problems[:6])))
+                                              "DIFFERS: " + "; ".join(problems[:6]))
+              + (f" (new in {after_root}: {', '.join(sorted(added))})" if added else ""))
     return 1 if differ else 0
 
 

@@ -218,8 +218,21 @@ def _bone_list_contacts(spheres, hashed, table, lists):
     return CandidateLists(lists.muscle, lists.mb_begin, lists.mb_end, mb_idx, room)
 
 
+def used_structures(contacts, options):
+    """``(bvh, bone_table)`` for :func:`collide`: ``contacts.bvh`` when the run finds its pairs
+    through the octree BVH, ``contacts.bone_table`` when the muscle spheres meet the bones as
+    sphere sets through the spatial hash, None for what the run does not use. Numba prunes a
+    branch on an argument that is None before it compiles, so a run compiles (and loads) no
+    code of a structure it does not use."""
+    use_solids = contacts.solids.transforms.shape[0] > 0
+    bvh = contacts.bvh if options.use_bvh else None
+    bone_table = (contacts.bone_table if not options.use_bvh and options.muscle_bone
+                  and not use_solids else None)
+    return bvh, bone_table
+
+
 @njit(cache=True)
-def collide(contacts, options, lists):
+def collide(contacts, options, lists, bvh, bone_table):
     """Collision detection at the gathered sphere centres: each collided sphere's displacement
     by the paper's response into ``spheres.disp``, ``spheres.collided`` set (both cleared by
     the gather); the bones as sphere sets, or as solids (tallied from what
@@ -227,14 +240,15 @@ def collide(contacts, options, lists):
     Returns ``(muscle pairs, bone pairs, deepest penetration before the response mm, seconds
     of muscle CD, seconds of bone CD, spheres whose lists were refreshed, lists)``; keep the
     returned :class:`CandidateLists` (grown when they outgrow their room). ``contacts`` a
-    :class:`Contacts`, ``options`` :class:`ContactOptions`."""
+    :class:`Contacts`, ``options`` :class:`ContactOptions`, ``bvh`` and ``bone_table`` from
+    :func:`used_structures`."""
     spheres, hashed, solids = contacts.spheres, contacts.hashed, contacts.solids
     use_solids = solids.transforms.shape[0] > 0
     t1 = now()
     mm_count, mb_count, deepest, refreshed = 0, 0, 0.0, 0
-    if options.use_bvh:
-        mm_count, mb_count, deepest, mm_seconds = _bvh_contacts(spheres, contacts.bvh,
-                                                                options, use_solids)
+    if bvh is not None:
+        mm_count, mb_count, deepest, mm_seconds = _bvh_contacts(spheres, bvh, options,
+                                                                use_solids)
         t2 = t1 + mm_seconds
     else:
         muscle = lists.muscle
@@ -246,8 +260,8 @@ def collide(contacts, options, lists):
             mm_count, deepest = tally(spheres.pair_count, spheres.pair_pen)
         lists = CandidateLists(muscle, lists.mb_begin, lists.mb_end, lists.mb_idx, lists.room)
         t2 = now()
-        if options.muscle_bone and not use_solids:
-            lists = _bone_list_contacts(spheres, hashed, contacts.bone_table, lists)
+        if bone_table is not None:
+            lists = _bone_list_contacts(spheres, hashed, bone_table, lists)
             mb_count, pen = tally(spheres.pair_count, spheres.pair_pen)
             deepest = max(deepest, pen)
     if options.muscle_bone and use_solids:
@@ -288,10 +302,11 @@ def _respond_all(x, v, particle, disp, collided, ever_collided):
 
 
 @njit(cache=True)
-def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, solid_ever, box):
+def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, solid_ever, box,
+            bvh, bone_table):
     """Collision passes without the MSS step (:func:`collide` and the response) until no pair
     penetrates more than ``tolerance`` mm, at most ``passes`` (``contacts``, ``options``,
-    ``lists`` as for :func:`collide`).
+    ``lists``, ``bvh``, ``bone_table`` as for :func:`collide`).
 
     A response moves the spheres of a pair apart as measured before it; when a sphere is
     pressed between two objects (a muscle against a bone, say) one pass leaves half the
@@ -317,7 +332,7 @@ def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, so
         if options.muscle_bone and solids.transforms.shape[0] > 0:
             solid_contacts(solids, contacts.grid, box)
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = collide(
-            contacts, options, lists)
+            contacts, options, lists, bvh, bone_table)
         done += 1
         _respond_all(x, v, spheres.particle, spheres.disp, spheres.collided, ever_collided)
         if options.muscle_bone:
@@ -371,10 +386,11 @@ def final_passes(x, v, contacts, settings: SolverSettings, lists, collided_spher
     if not (settings.contacts.projection_passes > 0 and (settings.contacts.muscle_muscle or settings.contacts.muscle_bone)):
         return 0, 0.0, 0.0
     tick = time.perf_counter()
-    passes, left, _ = project(x, v, contacts, contact_options(settings),
+    options = contact_options(settings)
+    passes, left, _ = project(x, v, contacts, options,
                               int(settings.contacts.projection_passes),
                               float(settings.contacts.penetration_tolerance), lists, collided_spheres,
-                              solid_collided, box)
+                              solid_collided, box, *used_structures(contacts, options))
     return passes, left, time.perf_counter() - tick
 
 

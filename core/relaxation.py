@@ -54,7 +54,7 @@ from numba import njit, prange
 from .bone_distance import BoneSolids
 from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_spheres,
                        contact_options, final_passes, gather_sphere, hash_state, now,
-                       respond_sphere, solved_state, world_box)
+                       respond_sphere, solved_state, used_structures, world_box)
 from .errors import MuscleMSSError
 from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
                     stability_problem)
@@ -132,11 +132,12 @@ def _first_set(flags):
 
 @njit(cache=True)
 def _solve_chunk(mss, springs, contacts, options, history, control, first, last, started,
-                 lists):
+                 lists, bvh, bone_table):
     """Iterations ``first`` up to ``last`` (fewer when a termination stops the loop): the MSS
     step of ``mss`` (:class:`~muscle_mss.core.mss.MSSState`) with ``springs``
     (:class:`~muscle_mss.core.mss.SpringLayout`), the collisions of ``contacts``
-    (:func:`~muscle_mss.core.contacts.collide`), the response; each iteration's row of
+    (:func:`~muscle_mss.core.contacts.collide`, with ``bvh`` and ``bone_table`` from
+    :func:`~muscle_mss.core.contacts.used_structures`), the response; each iteration's row of
     ``history`` (:class:`IterationHistory`), stopping as ``control``
     (:class:`RelaxationControl`) says. Returns ``(status, iterations done, diverged muscle or
     -1, list refreshes, lists)``."""
@@ -169,7 +170,7 @@ def _solve_chunk(mss, springs, contacts, options, history, control, first, last,
             it += 1
             break
         mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = collide(
-            contacts, options, lists)
+            contacts, options, lists, bvh, bone_table)
         rebuilds += refreshed
         t3 = now()
         # the response: apply the displacements, stop the collided particles; each muscle's
@@ -317,6 +318,7 @@ def _iterate(model, settings, mss, springs, contacts, control, lists, progress):
                                np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap),
                                np.zeros(4))
     options = contact_options(settings)
+    structures = used_structures(contacts, options)
     started = time.perf_counter()
     done = 0
     chunk = 1
@@ -327,7 +329,7 @@ def _iterate(model, settings, mss, springs, contacts, control, lists, progress):
         tick = time.perf_counter()
         status, done, bad, more, lists = _solve_chunk(
             mss, springs, contacts, options, history, control, done, min(cap, done + chunk),
-            started, lists)
+            started, lists, *structures)
         rebuilds += more
         per_iteration = (time.perf_counter() - tick) / max(done - before, 1)
         chunk = int(min(max(CHUNK_SECONDS / max(per_iteration, 1e-9), 1), 1000))

@@ -5,7 +5,8 @@ sampling itself runs, as the Spring Builder clears the rest radii of both forms 
 the other method's. Asserted on what Numba compiled, not on time: in a fresh process with an empty kernel
 cache every kernel a run reaches is compiled through its dispatcher, callees included, and the
 dispatcher lists the argument types it was compiled for (``signatures``); a kernel nothing
-reached has none.
+reached has none (the contact code hands the structures a run does not use to its kernels as
+None, whose branches Numba prunes: ``contacts.used_structures``).
 
 One cold compile of the default path (minutes), in the venv only: which kernels a call reaches
 is decided by the sources, the same in Debian's Python.
@@ -40,10 +41,6 @@ SPHERE_SET_CONTACTS = ("muscle_mss.core.contacts._bone_list_contacts",
                        "muscle_mss.core.spatial_hash._own_list_contacts")
 METHOD_MODULES = {METHOD_RELAXATION: "muscle_mss.core.relaxation.",
                   METHOD_QUASI_STATIC: "muscle_mss.core.quasi_static."}
-CONTACT_DISPATCH = ("core/contacts.py's collide calls _bvh_contacts and _bone_list_contacts "
-                    "whichever structure and bone contact the settings choose, and Numba "
-                    "compiles every callee of a kernel: the dispatch belongs in Python "
-                    "(reported for the solver's contact code; remove this mark with it)")
 
 pytestmark = pytest.mark.skipif(sys.prefix == sys.base_prefix,
                                 reason="one cold compile, in the venv (see the module's note)")
@@ -81,12 +78,10 @@ def test_the_default_run_compiles_no_kernel_of_the_other_method(compiled):
     assert _with_signatures(compiled, others) == []
 
 
-@pytest.mark.xfail(strict=True, reason=CONTACT_DISPATCH)
 def test_the_default_run_compiles_no_octree_bvh_kernel(compiled):
     assert any(k.startswith(BVH) for k in compiled)
     assert _with_signatures(compiled, (BVH, "muscle_mss.core.contacts._bvh_contacts")) == []
 
 
-@pytest.mark.xfail(strict=True, reason=CONTACT_DISPATCH)
 def test_the_default_run_compiles_no_bone_sphere_set_contact_kernel(compiled):
     assert _with_signatures(compiled, SPHERE_SET_CONTACTS) == []
