@@ -120,6 +120,21 @@ def test_both_methods_reach_the_same_equilibrium_with_tissue(bent):
     assert np.linalg.norm(free.positions - relaxed.positions, axis=1).max() > 0.5
 
 
+def test_iteration_cap_times_ten_gives_the_same_particles_with_tissue(bent):
+    """Converged means converged: once the tolerance is met the cap does not matter, and a ten
+    times tighter tolerance moves no particle more than a few tolerances."""
+    a = solver.solve(bent, settings=settings(tolerance=1e-3, iterations=400,
+                                            connective_tissue=0.05))
+    b = solver.solve(bent, settings=settings(tolerance=1e-3, iterations=4000,
+                                            connective_tissue=0.05))
+    assert a.converged and b.converged
+    assert np.array_equal(a.positions, b.positions)
+    tight = solver.solve(bent, settings=settings(tolerance=1e-4, iterations=4000,
+                                                connective_tissue=0.05))
+    assert tight.converged
+    assert np.linalg.norm(a.positions - tight.positions, axis=1).max() < 5e-3
+
+
 @pytest.mark.parametrize("method", [METHOD_QUASI_STATIC, METHOD_RELAXATION])
 def test_model_at_rest_stays_at_rest_with_tissue(method):
     model = slab(REFERENCE_PARTICLES)         # posed = rest: springs and tissue at rest
