@@ -33,13 +33,14 @@ from . import motion_run
 DEFAULT_VARIANTS = ({"Iterations": 3},)
 """The default settings (the method :mod:`muscle_mss.core.settings` makes the default): the
 kernels a first run uses, compiled before any other."""
-OTHER_VARIANTS = tuple({"Iterations": 3, "Method": method} for method in METHODS
-                       if method != DEFAULT_METHOD) + (
+OTHER_VARIANTS = tuple({"Iterations": 3, "Method": method, "ConnectiveTissue": 0.1}
+                       for method in METHODS if method != DEFAULT_METHOD) + (
     {"Iterations": 3, "Method": METHOD_RELAXATION, "CollisionStructure": STRUCTURE_BVH,
      "Blending": LINEAR, "Termination": TERMINATION_THRESHOLD},
 )
-"""The other methods, the octree BVH, linear blending and the relaxation's threshold
-termination: compiled after the defaults, so that a later choice compiles nothing either."""
+"""The other methods (with the connective tissue, whose energy kernel the default ratio 0
+does not reach), the octree BVH, linear blending and the relaxation's threshold termination:
+compiled after the defaults, so that a later choice compiles nothing either."""
 VARIANTS = DEFAULT_VARIANTS + OTHER_VARIANTS
 """Filter settings whose tiny solves together call every kernel with the argument types of a
 real run (property values select kernels, not argument types), the defaults first."""
