@@ -28,6 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_results import cpu_model, write_result
+
 REPO = Path(__file__).resolve().parents[1]
 PYTHONS = {
     "venv": ([str(REPO / ".venv" / "bin" / "python")], {}),
@@ -35,23 +37,6 @@ PYTHONS = {
 }
 """Name -> (command, environment added): the Pythons ./setup.sh compiles for."""
 LABELS = {"venv": "venv", "debian": "Debian's Python (pvpython, pvbatch)"}
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def write_result(lines, name) -> None:
-    """Print the table ``lines`` and write it to ``benchmarks/results/<name>``."""
-    text = "\n".join(lines) + "\n"
-    print(text)
-    (Path(__file__).resolve().parent / "results" / name).write_text(text)
 
 
 def measure() -> dict:

@@ -19,7 +19,6 @@ import platform
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numba
 import numpy as np
@@ -34,21 +33,13 @@ from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_bloc
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
+from bench_results import cpu_model, write_result
+
 PAPER = {20: (18.66, 8.15, 30.03, 56.84), 40: (39.97, 13.50, 37.43, 90.90),
          60: (60.53, 24.00, 56.03, 140.56), 80: (80.70, 29.53, 67.10, 177.33)}
 BONE_COUNTS = {"pelvis": 8527, "femur": 1568, "tibia": 1709}
 ITERATIONS = 500
 REPEATS = 3
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def machine() -> str:
@@ -62,13 +53,6 @@ def machine() -> str:
     return (f"{cpu_model()}, {os.cpu_count()} cores, numba {numba.__version__} ({layer}, "
             f"{numba.config.NUMBA_NUM_THREADS} threads), numpy {np.__version__}, Python "
             f"{platform.python_version()}")
-
-
-def write_result(lines, name) -> None:
-    """Print the table ``lines`` and write it to ``benchmarks/results/<name>``."""
-    text = "\n".join(lines) + "\n"
-    print(text)
-    (Path(__file__).resolve().parent / "results" / name).write_text(text)
 
 
 def posed_workload(scene_folder, time_point, n):
