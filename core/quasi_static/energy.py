@@ -15,6 +15,7 @@ from .. import spatial_hash
 from ..bone_distance import sample, to_rest
 from ..connective_tissue import add_tissue_energy
 from ..mss import add_cage_gradient, cage_volume
+from ..smooth_distance import smooth_sample
 from ..solid_contacts import solid_points
 from .preconditioner import Preconditioner, model_springs
 
@@ -126,7 +127,8 @@ def solid_contact_energy(x, gradient, weight, particle, radius, fixed, clearance
                          grid, sphere_energy, overlaps, deepest):
     """The contact penalty of every free muscle sphere against the bones as solids: ``w / 2
     max(0, r_i + clearance_b - d_b(c_i))^2`` per bone ``b``, ``d_b`` its signed distance
-    (:mod:`muscle_mss.core.bone_distance`, ``grid`` the fields sampled in the bones' rest
+    (continuously differentiable, :mod:`muscle_mss.core.smooth_distance`, so that no particle
+    rests on a kink of the energy; ``grid`` the fields sampled in the bones' rest
     frames, ``transforms`` (b, 3, 4) rest to posed), pushing along the distance gradient from
     whatever depth. Added to ``gradient``, ``sphere_energy``, ``overlaps[:, 1]`` and
     ``deepest`` (after :func:`sphere_contact_energy`)."""
@@ -140,7 +142,7 @@ def solid_contact_energy(x, gradient, weight, particle, radius, fixed, clearance
         worst = deepest[i]
         for b in range(transforms.shape[0]):
             qx, qy, qz = to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
-            value, hx, hy, hz = sample(b, qx, qy, qz, grid)
+            value, hx, hy, hz = smooth_sample(b, qx, qy, qz, grid)
             pen = radius[i] + clearance[b] - value
             if pen > 0.0:
                 e += 0.5 * weight * pen * pen
