@@ -160,7 +160,7 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
     the summary table. ``writing``: a :class:`run_output.Writing` (default: every series, the
     default compressor). Returns the summary rows."""
     from . import motion_run, run_output
-    from .output_folder import record
+    from .output_folder import claim
     from .pictures import convergence_picture, poses_picture
 
     writing = writing or run_output.Writing()
@@ -178,7 +178,7 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
     run_output.write_summary(out, rows)
     run_output.write_index(out, pipeline.times, series_names=writing.series)
     index = farthest_pose_index(scene.motion)
-    record(out, run_output.CONVERGENCE_PICTURE, run_output.POSES_PICTURE)
+    claim(out, run_output.CONVERGENCE_PICTURE, run_output.POSES_PICTURE)
     convergence_picture(os.path.join(out, run_output.convergence_file(index)),
                         os.path.join(out, run_output.CONVERGENCE_PICTURE),
                         title=f"convergence at t = {pipeline.times[index]:.3f} s")

@@ -7,9 +7,10 @@
   process ends however it ends (an error, Ctrl-C, a kill), so a lock file left behind by a
   killed run is taken over, with a note naming the pid that left it.
 * **Manifest.** ``OUT/.muscle-mss-manifest`` lists, one relative path a line, every file a run
-  writes there; each writer adds its files before it creates them (:func:`record`, appended
+  writes there; each writer adds its files before it creates them (:func:`claim`, appended
   with ``O_APPEND``, so that MPI ranks writing their own time points share it and an
-  interrupted run leaves its partial files listed).
+  interrupted run leaves its partial files listed), and never writes over a file it does not
+  list.
 * **Overwrite.** ``--overwrite`` removes only the plain files the previous run's manifest lists
   (never a symbolic link, a folder, a file it does not list or a path outside the folder), then
   the folders that this left empty. A name a run writes that is taken by something the manifest
@@ -30,6 +31,20 @@ MANIFEST_FILE = ".muscle-mss-manifest"
 LOCK_FILE = ".muscle-mss.lock"
 _MANIFEST_HEAD = ("# files written by muscle-mss into this folder, one a line; --overwrite "
                   "removes these and nothing else\n")
+
+
+def claim(out: str, *relative_paths: str) -> None:
+    """Before writing ``relative_paths`` (relative to ``out``): refuse one that something the
+    manifest does not list already takes (a file of an older run or of the user deep in
+    ``series/``: never written over), then :func:`record` them."""
+    listed = set(listed_files(out))
+    for relative in relative_paths:
+        if relative.replace(os.sep, "/") not in listed and os.path.lexists(
+                os.path.join(out, relative)):
+            raise MuscleMSSError(f"cannot write {os.path.join(out, relative)}: something "
+                                 "muscle-mss did not write is there (its manifest "
+                                 f"{MANIFEST_FILE} does not list it); move it away")
+    record(out, *relative_paths)
 
 
 def record(out: str, *relative_paths: str) -> None:

@@ -153,13 +153,13 @@ def write_time_point(result, out: str, series_names=SERIES,
         for (name, _), (staged, succeeded) in zip(jobs, written):
             final = series_file(name, result.index)
             named = _check_written(staged, os.path.join(out, final), succeeded)
-            folder.record(out, final, *(os.path.join(os.path.dirname(final), n) for n in named))
+            folder.claim(out, final, *(os.path.join(os.path.dirname(final), n) for n in named))
             _move_into_place(staged, os.path.join(out, final))
     except OSError as err:
         raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    folder.record(out, convergence_file(result.index))
+    folder.claim(out, convergence_file(result.index))
     write_columns(os.path.join(out, convergence_file(result.index)), result.convergence)
     result.timings["write"] = wallclock.perf_counter() - start
 
@@ -273,7 +273,7 @@ def write_index(out: str, times, indices=None, series_names=SERIES) -> None:
     """Write the ``.pvd`` index of each series of ``series_names`` for time points ``indices``
     (default ``0..len(times)-1``) at ``times``."""
     indices = range(len(times)) if indices is None else indices
-    folder.record(out, *map(index_file, series_names))
+    folder.claim(out, *map(index_file, series_names))
     for name in series_names:
         entries = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" '
                             f'file="{series_file(name, i)}"/>' for i, t in zip(indices, times))
@@ -284,7 +284,7 @@ def write_index(out: str, times, indices=None, series_names=SERIES) -> None:
 
 def write_summary(out: str, rows) -> str:
     """Write ``summary.csv`` (rows sorted by time point, muscles in scene order)."""
-    folder.record(out, SUMMARY_FILE)
+    folder.claim(out, SUMMARY_FILE)
     path = os.path.join(out, SUMMARY_FILE)
     write_csv(path, SUMMARY_COLUMNS, ([r[c] for c in SUMMARY_COLUMNS] for r in rows))
     return path

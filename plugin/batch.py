@@ -93,7 +93,7 @@ def _run(args, controller, rank, size, settings, writing) -> int:
         pipeline, rows = motion_run.run_motion(
             args.scene, args.out, settings,
             part=(rank, size), series_names=writing.series, compressor=writing.compressor)
-        output_folder.record(args.out, partial)
+        output_folder.claim(args.out, partial)
         run_output.write_csv(os.path.join(args.out, partial), run_output.SUMMARY_COLUMNS,
                              ([r[c] for c in run_output.SUMMARY_COLUMNS] for r in rows))
     except MuscleMSSError as err:

@@ -71,6 +71,16 @@ def test_results_without_a_manifest_are_refused_even_with_overwrite(small_scene_
     assert _files(tmp_path) == {"series/surfaces_0003.vtm", "surfaces.pvd"}
 
 
+def test_a_file_the_run_would_write_over_deep_in_series_is_kept(small_scene_dir, tmp_path,
+                                                               capsys):
+    (tmp_path / "series").mkdir()
+    (tmp_path / "series" / "surfaces_0010.vtm").write_text("mine")
+    assert _run(small_scene_dir, tmp_path, "--overwrite") == 2
+    assert f"cannot write {tmp_path / 'series' / 'surfaces_0010.vtm'}: something muscle-mss " \
+           "did not write is there" in capsys.readouterr().err
+    assert (tmp_path / "series" / "surfaces_0010.vtm").read_text() == "mine"
+
+
 def test_overwrite_removes_no_link_and_nothing_outside_the_folder(tmp_path):
     out, outside = tmp_path / "out", tmp_path / "outside.txt"
     out.mkdir()
