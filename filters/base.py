@@ -270,6 +270,14 @@ def interruption(label: str) -> Interrupted:
     return Interrupted(f"Ctrl-C while {label} ran")
 
 
+def interrupted_message(err: KeyboardInterrupt, command: str) -> str:
+    """What the CLI and the batch print for a Ctrl-C that stopped ``command``: the filter's
+    :class:`Interrupted`, or for a bare KeyboardInterrupt (between filters, while writing) the
+    filter running then, else the command."""
+    text = str(err) or str(interruption(running_filter() or command))
+    return f"interrupted: {text}; the output folder may hold part of the results"
+
+
 def caused_by_ctrl_c(err: BaseException) -> bool:
     """Whether ``err`` comes from a Ctrl-C: a compiled kernel (Numba) that finds the signal
     pending returns a result with KeyboardInterrupt set, which Python reports as a SystemError

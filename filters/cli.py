@@ -310,12 +310,8 @@ def main(argv=None) -> int:
         print(f"error: {label + ': ' if label else ''}{err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as err:
-        from .base import interruption, running_filter
-        # a Ctrl-C outside a filter's own handling (between filters, while writing) is a bare
-        # KeyboardInterrupt without text: name what ran
-        text = str(err) or str(interruption(running_filter() or f"muscle-mss {args.command}"))
-        print(f"\ninterrupted: {text}; the output folder may hold part of the results",
-              file=sys.stderr)
+        from .base import interrupted_message
+        print(f"\n{interrupted_message(err, f'muscle-mss {args.command}')}", file=sys.stderr)
         return 130
 
 

@@ -79,7 +79,13 @@ def main(argv=None) -> int:
                 failed = 1
         if _any_rank(controller, size, failed):
             return 1
-        return _run(args, controller, rank, size, settings, writing)
+        try:
+            return _run(args, controller, rank, size, settings, writing)
+        except KeyboardInterrupt as err:    # the lock is released on the way out
+            from muscle_mss.filters.base import interrupted_message
+            print(f"rank {rank}: {interrupted_message(err, 'muscle_mss.plugin.batch')}",
+                  file=sys.stderr)
+            return 130
 
 
 def _run(args, controller, rank, size, settings, writing) -> int:

@@ -134,6 +134,17 @@ def test_ctrl_c_in_a_solve_is_an_interruption_naming_the_filter(raised, small_sc
     assert "SystemError" not in stderr and "report" not in stderr
 
 
+def test_ctrl_c_stops_the_batch_naming_the_filter_and_releases_the_folder(
+        small_scene_dir, tmp_path, monkeypatch, capsys):
+    from muscle_mss.filters.output_folder import LOCK_FILE
+    from muscle_mss.plugin.batch import main as batch
+    _raise_in_solver(monkeypatch, KeyboardInterrupt)
+    assert batch([str(small_scene_dir), str(tmp_path), "--iterations", "3"]) == 130
+    assert "rank 0: interrupted: Ctrl-C while MSS Collision Solver ran;" \
+        in capsys.readouterr().err
+    assert not (tmp_path / LOCK_FILE).exists()
+
+
 def test_ctrl_c_before_a_filters_own_handling_names_the_filter(small_scene_dir, monkeypatch):
     from muscle_mss.filters import base
 
