@@ -140,7 +140,11 @@ def output_lock(out: str):
     (else None). Raises :class:`MuscleMSSError` when another run holds it."""
     path = os.path.join(out, LOCK_FILE)
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise MuscleMSSError(f"output folder {out} cannot be written: "
+                                 f"{err.strerror or err}") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -149,6 +153,10 @@ def output_lock(out: str):
             raise MuscleMSSError(f"output folder {out} is in use by another muscle-mss run "
                                  f"(pid {holder}, lock {path}); wait for it to end or choose "
                                  "another folder") from None
+        except OSError as err:
+            os.close(fd)
+            raise MuscleMSSError(f"output folder {out} cannot be locked ({err.strerror or err}"
+                                 "); choose a folder on a local file system") from None
         # the holder before us may have removed the file between our open and our lock
         if os.path.exists(path) and os.stat(path).st_ino == os.fstat(fd).st_ino:
             break

@@ -3,8 +3,13 @@ folder's manifest, ``--overwrite`` removes only the files a previous run's manif
 a user's file or folder, a link or a path outside the folder), and a run holds a lock on the
 folder so that a second run into it is refused."""
 import csv
+import errno
+import fcntl
 import os
 
+import pytest
+
+from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.filters import output_folder, run_output
 from muscle_mss.filters.cli import main
 
@@ -148,3 +153,14 @@ def test_the_batch_lists_its_files_and_leaves_no_lock(small_scene, small_scene_d
     count = len(small_scene.motion.times)
     assert len([p for p in listed if p.endswith(".vtm")]) == count * len(run_output.SERIES)
     assert not (tmp_path / output_folder.LOCK_FILE).exists()
+
+
+def test_a_folder_that_cannot_be_locked_is_refused(tmp_path, monkeypatch):
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with pytest.raises(MuscleMSSError, match=f"output folder {tmp_path} cannot be locked "
+                                             r"\(No locks available\); choose a folder on a "
+                                             "local file system"):
+        with output_folder.output_lock(str(tmp_path)):
+            pass
