@@ -195,7 +195,10 @@ def prepare(out: str, overwrite: bool, names, folders) -> list:
     try:
         with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
             pass
-        return remove_listed(out)
+        removed = remove_listed(out)
+        with open(os.path.join(out, MANIFEST_FILE), "w") as f:   # this run's, empty
+            f.write(_MANIFEST_HEAD)
+        return removed
     except OSError as err:
         raise MuscleMSSError(f"output folder {out} cannot be written: "
                              f"{err.strerror or err}") from None

@@ -30,6 +30,7 @@ def test_the_manifest_lists_every_file_the_run_wrote_and_nothing_else(small_scen
     (tmp_path / "notes.txt").write_text("mine")
     assert _run(small_scene_dir, tmp_path) == 0
     listed = output_folder.listed_files(str(tmp_path))
+    assert (tmp_path / MANIFEST).read_text().startswith("# files written by muscle-mss")
     assert set(listed) == _files(tmp_path) - {MANIFEST, "notes.txt"}
     assert {"summary.csv", "surfaces.pvd", "convergence/convergence_0010.csv",
             "series/surfaces_0010.vtm", "series/surfaces_0010/surfaces_0010_0.vtp"} <= set(listed)
