@@ -66,24 +66,52 @@ def placement_problems(scene: Scene) -> list:
     whose surfaces and fibres passed their own rules. The rules are tried in turn and the first
     that finds problems gives them: a scene far away or in metres would break the later ones
     for that reason alone."""
-    for rule in (_far_from_origin, _too_small, _misplaced):
+    for rule in (far_point_problems, _too_small, _misplaced):
         problems = rule(scene)
         if problems:
             return problems
     return []
 
 
-def _far_from_origin(scene: Scene) -> list:
-    problems = []
-    for file, surfaces in ((MUSCLES_FILE, scene.muscles), (BONES_FILE, scene.bones)):
-        for name, surface in surfaces.items():
-            far = float(np.abs(surface.points).max()) if len(surface.points) else 0.0
-            if far > MAX_DISTANCE:
-                problems.append(
-                    f"{file} block '{name}': a vertex lies {far:.3g} mm from the origin; a scene "
-                    f"farther than {MAX_DISTANCE:g} mm (10 m) from its origin is implausible "
-                    "(lengths are in millimetres); move the scene near the origin")
-    return problems
+def far_point_problem(points, where: str, offsets=None):
+    """Why the points (n, 3) mm of block ``where`` are implausibly far from the origin (farther
+    than :data:`MAX_DISTANCE` in a coordinate), or None. Most of them far: the scene is offset;
+    a few: those points are wrong (one vertex at 1e12 mm otherwise shows up later as a surface
+    "oriented inward" or a failed kernel). ``offsets`` (F + 1,): the points are fibres, named
+    by fibre."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(points):
+        return None
+    # a NaN or infinite coordinate is a rule of its own (fibre_problems, surface_problems)
+    distance = np.abs(np.where(np.isfinite(points), points, 0.0)).max(axis=1)
+    far = distance > MAX_DISTANCE
+    if not far.any():
+        return None
+    p = int(np.argmax(distance))
+    if far.mean() > 0.5:
+        return (f"{where}: a vertex lies {distance[p]:.3g} mm from the origin; a scene farther "
+                f"than {MAX_DISTANCE:g} mm (10 m) from its origin is implausible (lengths are in "
+                "millimetres); move the scene near the origin")
+    point = f"point {p}"
+    if offsets is not None:
+        f = int(np.searchsorted(offsets, p, side="right") - 1)
+        point = f"fibre {f}'s point {p - int(offsets[f])}"
+    count = int(far.sum())
+    return (f"{where}: {point} lies {distance[p]:.3g} mm from the origin; a point farther than "
+            f"{MAX_DISTANCE:g} mm (10 m) from the origin is implausible (lengths are in "
+            f"millimetres) and {count} of the block's {len(points)} points "
+            f"{'is' if count == 1 else 'are'}, the rest not: correct or remove "
+            f"{'it' if count == 1 else 'them'}")
+
+
+def far_point_problems(scene: Scene) -> list:
+    """:func:`far_point_problem` of every muscle, bone and fibre block of ``scene``."""
+    problems = [far_point_problem(surface.points, f"{file} block '{name}'")
+                for file, surfaces in ((MUSCLES_FILE, scene.muscles), (BONES_FILE, scene.bones))
+                for name, surface in surfaces.items()]
+    problems += [far_point_problem(fibres.points, f"{FIBRES_FILE} block '{name}'",
+                                   fibres.offsets) for name, fibres in scene.fibres.items()]
+    return [p for p in problems if p]
 
 
 def _too_small(scene: Scene) -> list:
@@ -135,11 +163,13 @@ def scene_problems(scene: Scene, rows=None) -> list:
     ``rows`` = ``(times, bones, values (R, 12))`` checks the motion as read from the file, row
     by row; without it the rows are rebuilt from ``scene.motion``.
     """
-    problems = []
-    for name, surface in scene.muscles.items():
+    # a point implausibly far breaks every geometric rule after it for that reason alone
+    far = far_point_problems(scene)
+    problems = list(far)
+    for name, surface in (() if far else scene.muscles.items()):
         problems += [f"{MUSCLES_FILE} block '{name}': surface {p}"
                      for p in surface_problems(surface.points, surface.triangles)]
-    for name, surface in scene.bones.items():
+    for name, surface in (() if far else scene.bones.items()):
         problems += [f"{BONES_FILE} block '{name}': surface {p}"
                      for p in surface_problems(surface.points, surface.triangles)]
     if not scene.muscles:

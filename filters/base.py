@@ -13,7 +13,8 @@ re-raises it in Python — the error of the first failing filter upstream, not a
 a filter downstream of a failed one empties its outputs without a message of its own. Any other
 exception inside a filter becomes a :class:`MuscleMSSError` naming the filter, the exception and
 the line it came from (:func:`wrapped_error`; VTK would print the traceback and carry on with
-empty outputs); Ctrl-C becomes :class:`~muscle_mss.core.errors.Interrupted`, raised the same way.
+empty outputs); Ctrl-C becomes :class:`~muscle_mss.core.errors.Interrupted` naming the filter,
+raised the same way, also when it reaches the filter as another exception it caused.
 """
 from __future__ import annotations
 
@@ -91,9 +92,12 @@ class MuscleFilter(VTKPythonAlgorithmBase):
 
     # ---- ports -----------------------------------------------------------------------------
     def FillInputPortInformation(self, port, info):
+        # every port optional for VTK: for a required one left unconnected VTK's executive
+        # would skip RequestData with a message naming no input and leave the outputs empty
+        # without an error; RequestData refuses it, naming the input (Port.optional is what
+        # ParaView is told)
         info.Set(self.INPUT_REQUIRED_DATA_TYPE(), self.INPUTS[port].data_type)
-        if self.INPUTS[port].optional:
-            info.Set(self.INPUT_IS_OPTIONAL(), 1)
+        info.Set(self.INPUT_IS_OPTIONAL(), 1)
         return 1
 
     def FillOutputPortInformation(self, port, info):
@@ -102,6 +106,17 @@ class MuscleFilter(VTKPythonAlgorithmBase):
 
     # ---- execution ---------------------------------------------------------------------------
     def RequestData(self, request, inInfo, outInfo):
+        _running.append(self.LABEL)
+        try:
+            return self._request_data(request, inInfo, outInfo)
+        except KeyboardInterrupt:   # before the filter's own handling began: not into VTK
+            self._fail(interruption(self.LABEL), [])
+            return 1
+        finally:
+            self._request = self._out_info = None
+            _running.pop()
+
+    def _request_data(self, request, inInfo, outInfo):
         # VTK 9.2/9.3 keep an abort flag set from the previous run (paraview-python-plugins §6).
         self.SetAbortExecute(0)
         self._error = None
@@ -114,7 +129,6 @@ class MuscleFilter(VTKPythonAlgorithmBase):
             # one to show (Update raises it), not a complaint about the empty data it left here
             for out in outputs:
                 out.Initialize()
-            self._request = self._out_info = None
             return 1
         try:
             self._check_properties()
@@ -124,18 +138,17 @@ class MuscleFilter(VTKPythonAlgorithmBase):
                 if inInfo[i].GetNumberOfInformationObjects() > 0:
                     data = data_object.Get(inInfo[i].GetInformationObject(0))
                 if data is None and not port.optional:
-                    raise MuscleMSSError(f"input '{port.name}' is not connected")
+                    raise MuscleMSSError(f"input '{port.name}' is not connected; this input is "
+                                         f"required: {port.doc[:1].lower()}{port.doc[1:]}")
                 inputs.append(data)
             self.execute(inputs, outputs)
         except MuscleMSSError as err:
             self._fail(err, outputs)
         except KeyboardInterrupt:
-            self._fail(Interrupted(f"Ctrl-C while {self.LABEL} ran"),
-                       outputs)
+            self._fail(interruption(self.LABEL), outputs)
         except Exception as err:    # VTK would print it and go on with this filter's outputs
-            self._fail(wrapped_error(self.LABEL, err), outputs)
-        finally:
-            self._request = self._out_info = None
+            self._fail(interruption(self.LABEL) if caused_by_ctrl_c(err)
+                       else wrapped_error(self.LABEL, err), outputs)
         return 1
 
     @property
@@ -240,6 +253,42 @@ def upstream_error(algorithm):
             if error is not None:
                 return error
     return None
+
+
+_running = []
+"""The labels of the muscle-mss filters executing now, innermost last: what a Ctrl-C that
+reaches the caller outside a filter's error handling interrupted (:func:`running_filter`)."""
+
+
+def running_filter():
+    """The label of the muscle-mss filter executing now, or None."""
+    return _running[-1] if _running else None
+
+
+def interruption(label: str) -> Interrupted:
+    """The :class:`Interrupted` of a Ctrl-C while filter ``label`` ran."""
+    return Interrupted(f"Ctrl-C while {label} ran")
+
+
+def interrupted_message(err: KeyboardInterrupt, command: str) -> str:
+    """What the CLI and the batch print for a Ctrl-C that stopped ``command``: the filter's
+    :class:`Interrupted`, or for a bare KeyboardInterrupt (between filters, while writing) the
+    filter running then, else the command."""
+    text = str(err) or str(interruption(running_filter() or command))
+    return f"interrupted: {text}; the output folder may hold part of the results"
+
+
+def caused_by_ctrl_c(err: BaseException) -> bool:
+    """Whether ``err`` comes from a Ctrl-C: a compiled kernel (Numba) that finds the signal
+    pending returns a result with KeyboardInterrupt set, which Python reports as a SystemError
+    caused by it."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
 
 
 def wrapped_error(label: str, err: BaseException) -> MuscleMSSError:

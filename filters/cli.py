@@ -9,6 +9,7 @@ written).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
@@ -159,6 +160,7 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
     the summary table. ``writing``: a :class:`run_output.Writing` (default: every series, the
     default compressor). Returns the summary rows."""
     from . import motion_run, run_output
+    from .output_folder import claim
     from .pictures import convergence_picture, poses_picture
 
     writing = writing or run_output.Writing()
@@ -176,6 +178,7 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
     run_output.write_summary(out, rows)
     run_output.write_index(out, pipeline.times, series_names=writing.series)
     index = farthest_pose_index(scene.motion)
+    claim(out, run_output.CONVERGENCE_PICTURE, run_output.POSES_PICTURE)
     convergence_picture(os.path.join(out, run_output.convergence_file(index)),
                         os.path.join(out, run_output.CONVERGENCE_PICTURE),
                         title=f"convergence at t = {pipeline.times[index]:.3f} s")
@@ -193,38 +196,53 @@ def compile_kernels() -> None:
     ensure_compiled(stderr_notice)
 
 
+@contextlib.contextmanager
+def held_output_folder(out: str, overwrite: bool):
+    """:func:`run_output.output_folder` saying what it did: a lock taken over, an earlier run
+    replaced."""
+    from .run_output import output_folder
+    with output_folder(out, overwrite) as (removed, note):
+        if note:
+            print(note, file=sys.stderr)
+        if removed:
+            print(f"replacing the previous run in {out} ({len(removed)} files it wrote removed)")
+        yield
+
+
 def cmd_demo(args) -> int:
-    from .run_output import check_output_folder
-    writing = writing_from(args)
-    if check_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
-        print(f"replacing the results of the previous run in {args.out}")
-    scene_folder = os.path.join(args.out, "scene")
-    scene = write_demo_scene(scene_folder, args.size, args.region)
-    print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> {scene_folder}")
-    run_and_report(scene_folder, args.out, settings_from(args), scene, writing)
+    writing, settings = writing_from(args), settings_from(args)
+    with held_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
+        scene_folder = os.path.join(args.out, "scene")
+        scene = write_demo_scene(scene_folder, args.size, args.region)
+        print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> {scene_folder}")
+        run_and_report(scene_folder, args.out, settings, scene, writing)
     return 0
 
 
 def cmd_run(args) -> int:
-    from . import motion_run, run_output
     from .scene_io import load_scene
-    writing = writing_from(args)
+    writing, settings = writing_from(args), settings_from(args)
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
-    if run_output.check_output_folder(args.out, args.overwrite):
-        print(f"replacing the previous run in {args.out}")
-    if args.time is None:
-        run_and_report(args.scene, args.out, settings_from(args), scene, writing)
-        return 0
+    with held_output_folder(args.out, args.overwrite):
+        if args.time is None:
+            run_and_report(args.scene, args.out, settings, scene, writing)
+        else:
+            run_time_point(args, settings, writing)
+    return 0
+
+
+def run_time_point(args, settings, writing) -> None:
+    """``muscle-mss run --time T``: solve and write the time point nearest T."""
+    from . import motion_run, run_output
     compile_kernels()
-    pipeline = motion_run.build_pipeline(args.scene, settings_from(args))
+    pipeline = motion_run.build_pipeline(args.scene, settings)
     index = time_point_index(pipeline.times, args.time)
     result = motion_run.solve_time_point(pipeline, index)
     run_output.write_time_point(result, args.out, writing.series, writing.compressor)
     run_output.write_summary(args.out, result.rows)
     run_output.write_index(args.out, [result.time], [result.index], writing.series)
     print(summary_table(result.rows))
-    return 0
 
 
 def time_point_index(times, time: float) -> int:
@@ -292,8 +310,8 @@ def main(argv=None) -> int:
         print(f"error: {label + ': ' if label else ''}{err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as err:
-        print(f"\ninterrupted: {err or 'by the user (Ctrl-C)'}; the output folder may hold "
-              "part of the results", file=sys.stderr)
+        from .base import interrupted_message
+        print(f"\n{interrupted_message(err, f'muscle-mss {args.command}')}", file=sys.stderr)
         return 130
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.fibres import resample_fibres
 from muscle_mss.core.scene import FIBRES_FILE
+from muscle_mss.core.validation import far_point_problem
 
 from . import array_names as A
 from . import vtk_arrays as V
@@ -42,7 +43,7 @@ def fibre_polylines(block, where: str):
     ``grid`` is the (F, 2) int32 ``fibre_grid`` of the polylines, or None when absent.
     """
     V.require_polydata(block, where, "a fibre block of polylines")
-    offsets, connectivity = V.lines_of(block)
+    offsets, connectivity = V.fibre_lines(block, where)
     if len(offsets) < 2:
         raise MuscleMSSError(f"{where} has no fibres; a muscle needs at least one fibre "
                              "polyline (line cell)")
@@ -62,6 +63,9 @@ def fibre_polylines(block, where: str):
         if not np.isfinite(grid).all() or (grid != np.round(grid)).any():
             raise MuscleMSSError(f"{where}: fibre_grid must hold whole numbers (row, col)")
         grid = grid.astype(np.int32)
+    problem = far_point_problem(points[connectivity], where, offsets)
+    if problem:
+        raise MuscleMSSError(problem)
     return points[connectivity], offsets, grid
 
 

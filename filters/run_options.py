@@ -8,6 +8,7 @@ iterations and tolerance from :mod:`muscle_mss.core.settings`, the series and co
 """
 from __future__ import annotations
 
+from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_ITERATIONS,
                                       DEFAULT_METHOD, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC,
                                       METHOD_RELAXATION, METHODS)
@@ -55,7 +56,15 @@ def add_run_options(p) -> None:
 
 
 def settings_from(args) -> dict:
-    """Filter property settings from the options that were given."""
+    """Filter property settings from the options that were given; :class:`MuscleMSSError` for
+    an option that the chosen method would ignore."""
+    method = METHOD_OPTIONS.get(args.method) or DEFAULT_METHOD
+    if args.tolerance is not None and method != METHOD_QUASI_STATIC:
+        raise MuscleMSSError(
+            f"--tolerance {args.tolerance:g} applies only to --method "
+            f"{method_option(METHOD_QUASI_STATIC)} (the largest particle move of its last step); "
+            f"--method {method_option(method)} runs --iterations iterations and would ignore "
+            f"it: drop --tolerance or add --method {method_option(METHOD_QUASI_STATIC)}")
     pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
              ("Iterations", args.iterations), ("Method", METHOD_OPTIONS.get(args.method)),
              ("Tolerance", args.tolerance), ("ConnectiveTissue", args.connective_tissue))
@@ -64,4 +73,5 @@ def settings_from(args) -> dict:
 
 def writing_from(args) -> Writing:
     """What to write and how, from ``--write`` and ``--compressor``."""
-    return Writing(parse_write_option(args.write or ",".join(SERIES)), args.compressor)
+    return Writing(SERIES if args.write is None else parse_write_option(args.write),
+                   args.compressor)

@@ -13,6 +13,7 @@ Every file is written atomically (a reader sees the old file or the whole new on
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import re
@@ -29,6 +30,7 @@ from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataWriter
 from muscle_mss.core.errors import MuscleMSSError
 
 from . import array_names as A
+from . import output_folder as folder
 
 SUMMARY_COLUMNS = (A.TIME, A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
                    A.MEAN_FIBRE_STRAIN, A.MAX_FIBRE_STRAIN, A.SPHERE_OVERLAP_MM,
@@ -91,37 +93,24 @@ def convergence_file(index: int) -> str:
     return os.path.join(CONVERGENCE_FOLDER, f"convergence_{index:04d}.csv")
 
 
-def previous_run(out: str) -> list:
-    """The files and folders of a run (:data:`RUN_FILES`) that ``out`` holds already."""
-    return [name for name in RUN_FILES if os.path.exists(os.path.join(out, name))]
-
-
-def check_output_folder(out: str, overwrite: bool = False) -> list:
-    """Check ``out`` before solving: it is created if missing and must be writable; when it
-    holds another run's results they are refused, or removed with ``overwrite`` (so that no
-    file of the earlier run, e.g. a time point it had in addition, stays beside the new ones).
-    Returns the names removed. Raises :class:`MuscleMSSError` naming the folder and the cause."""
+@contextlib.contextmanager
+def output_folder(out: str, overwrite: bool = False):
+    """Hold ``out`` for a run (its lock, :mod:`~muscle_mss.filters.output_folder`) for the
+    ``with`` block, after checking it before solving: created if missing, writable, no name of
+    :data:`RUN_FILES` taken by a file or folder the run did not write, and no previous run's
+    results, which ``overwrite`` removes (the files its manifest lists, so that no file of the
+    earlier run, e.g. a time point it had in addition, stays beside the new ones). Yields
+    ``(removed, note)``: the relative paths removed and the note of a lock taken over (or
+    None). Raises :class:`MuscleMSSError` naming the folder and the cause."""
     if os.path.exists(out) and not os.path.isdir(out):
         raise MuscleMSSError(f"output folder {out} is a file; give a folder")
-    found = previous_run(out)
-    if found and not overwrite:
-        raise MuscleMSSError(f"output folder {out} holds the results of another run "
-                             f"({', '.join(found)}); choose another folder or pass --overwrite "
-                             "to replace them")
     try:
         os.makedirs(out, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
-            pass
-        for name in found:
-            path = os.path.join(out, name)
-            if os.path.isdir(path):
-                shutil.rmtree(path)
-            else:
-                os.remove(path)
     except OSError as err:
         raise MuscleMSSError(f"output folder {out} cannot be written: "
                              f"{err.strerror or err}") from None
-    return found
+    with folder.output_lock(out) as note:
+        yield folder.prepare(out, overwrite, RUN_FILES, (SERIES_FOLDER, CONVERGENCE_FOLDER)), note
 
 
 def write_time_point(result, out: str, series_names=SERIES,
@@ -162,13 +151,15 @@ def write_time_point(result, out: str, series_names=SERIES,
         with ThreadPoolExecutor(max(len(jobs), 1) if PARALLEL_WRITES else 1) as writers:
             written = list(writers.map(lambda job: write(*job), jobs))
         for (name, _), (staged, succeeded) in zip(jobs, written):
-            final = os.path.join(out, series_file(name, result.index))
-            _check_written(staged, final, succeeded)
-            _move_into_place(staged, final)
+            final = series_file(name, result.index)
+            named = _check_written(staged, os.path.join(out, final), succeeded)
+            folder.claim(out, final, *(os.path.join(os.path.dirname(final), n) for n in named))
+            _move_into_place(staged, os.path.join(out, final))
     except OSError as err:
         raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+    folder.claim(out, convergence_file(result.index))
     write_columns(os.path.join(out, convergence_file(result.index)), result.convergence)
     result.timings["write"] = wallclock.perf_counter() - start
 
@@ -187,15 +178,20 @@ def parse_write_option(text: str) -> tuple:
     in any order), in :data:`SERIES` order; :class:`MuscleMSSError` naming an unknown one."""
     names = [n.strip() for n in text.split(",") if n.strip()]
     unknown = [n for n in names if n not in SERIES]
-    if unknown or not names:
-        raise MuscleMSSError(f"--write {text!r}: {', '.join(unknown) or 'nothing'} is not a "
-                             f"series; give one or more of {','.join(SERIES)}")
+    if not names:
+        raise MuscleMSSError(f"--write {text!r} names no series to write; give one or more of "
+                             f"{','.join(SERIES)} (without --write all are written)")
+    if unknown:
+        raise MuscleMSSError(f"--write {text!r}: {', '.join(unknown)} is not a series; give "
+                             f"one or more of {','.join(SERIES)}")
     return tuple(n for n in SERIES if n in names)
 
 
-def _check_written(vtm: str, final: str, writer_ok: bool) -> None:
-    """Raise unless the writer reported success and wrote ``vtm`` and every file it names."""
+def _check_written(vtm: str, final: str, writer_ok: bool) -> list:
+    """The files ``vtm`` names (relative to its folder); raise unless the writer reported
+    success and wrote ``vtm`` and every file it names."""
     missing = [] if os.path.isfile(vtm) else [os.path.basename(final)]
+    named = []
     if not missing:
         with open(vtm) as f:
             named = re.findall(r'file="([^"]+)"', f.read())
@@ -204,16 +200,18 @@ def _check_written(vtm: str, final: str, writer_ok: bool) -> None:
         raise MuscleMSSError(f"writing {final} failed"
                              + (f": {', '.join(missing)} not written" if missing else "")
                              + "; check the free space and permissions of the output folder")
+    return named
 
 
 def _move_into_place(staged_vtm: str, final_vtm: str) -> None:
-    """Rename a staged ``.vtm`` and its folder of ``.vtp`` files over the final ones; the
-    ``.vtm`` last, so that it never names files that are not there."""
+    """Rename a staged ``.vtm`` and its folder of ``.vtp`` files into place; the ``.vtm`` last,
+    so that it never names files that are not there. A folder in the way is not ours (the
+    output folder's check removed the previous run's files): refused, never removed."""
     staged_dir, final_dir = os.path.splitext(staged_vtm)[0], os.path.splitext(final_vtm)[0]
-    if os.path.exists(final_vtm):
-        os.remove(final_vtm)
-    if os.path.isdir(final_dir):
-        shutil.rmtree(final_dir)
+    for path in (final_dir, final_vtm):
+        if os.path.lexists(path) and (os.path.isdir(path) or os.path.islink(path)):
+            raise MuscleMSSError(f"cannot write {final_vtm}: {path} is in the way and muscle-mss "
+                                 f"did not write it; move it away")
     if os.path.isdir(staged_dir):
         os.replace(staged_dir, final_dir)
     os.replace(staged_vtm, final_vtm)
@@ -275,6 +273,7 @@ def write_index(out: str, times, indices=None, series_names=SERIES) -> None:
     """Write the ``.pvd`` index of each series of ``series_names`` for time points ``indices``
     (default ``0..len(times)-1``) at ``times``."""
     indices = range(len(times)) if indices is None else indices
+    folder.claim(out, *map(index_file, series_names))
     for name in series_names:
         entries = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" '
                             f'file="{series_file(name, i)}"/>' for i, t in zip(indices, times))
@@ -285,6 +284,7 @@ def write_index(out: str, times, indices=None, series_names=SERIES) -> None:
 
 def write_summary(out: str, rows) -> str:
     """Write ``summary.csv`` (rows sorted by time point, muscles in scene order)."""
+    folder.claim(out, SUMMARY_FILE)
     path = os.path.join(out, SUMMARY_FILE)
     write_csv(path, SUMMARY_COLUMNS, ([r[c] for c in SUMMARY_COLUMNS] for r in rows))
     return path

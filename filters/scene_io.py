@@ -261,10 +261,12 @@ def fibres_from_vtk(multiblock, filename=FIBRES_FILE) -> dict:
     for name, block in V.polydata_blocks(multiblock, filename, "a block of fibre polylines"):
         where = f"{filename} block '{name}'"
         points = V.points_of(block)
-        offsets, connectivity = V.lines_of(block)
+        offsets, connectivity = V.fibre_lines(block, where)
         grid = V.cell_array(block, A.FIBRE_GRID, where, required=False)
-        if grid is not None:
-            grid = np.asarray(grid).reshape(len(offsets) - 1, -1).astype(np.int32)
+        if grid is not None:   # cell data runs over vertices first, then lines
+            first = block.GetNumberOfVerts()
+            grid = np.asarray(grid).reshape(len(grid), -1)[first:first + len(offsets) - 1]
+            grid = grid.astype(np.int32)
         out[name] = FibreSet(points[connectivity], offsets, grid,
                              _attachment_name(block, A.ORIGIN_BONE, where),
                              _attachment_name(block, A.INSERTION_BONE, where))
@@ -273,7 +275,8 @@ def fibres_from_vtk(multiblock, filename=FIBRES_FILE) -> dict:
 
 def motion_rows_from_table(table, filename=MOTION_FILE):
     """``(times, bones, values (R, 12))`` of a motion table; raise if a column is missing."""
-    columns = V.table_columns(table)
+    # spaces around the header's names (``time, bone, m00``) are no part of them
+    columns = {name.strip(): values for name, values in V.table_columns(table).items()}
     missing = [c for c in MOTION_COLUMNS if c not in columns]
     if missing:
         raise MuscleMSSError(f"{filename}: column(s) {', '.join(missing)} missing; the header "
@@ -292,7 +295,7 @@ def motion_rows_from_table(table, filename=MOTION_FILE):
                                          "number; every time and matrix entry must be a "
                                          "number") from None
         raise MuscleMSSError(f"{filename}: a time or matrix entry is not a number") from None
-    return times, [str(b) for b in columns["bone"]], values
+    return times, [str(b).strip() for b in columns["bone"]], values
 
 
 def check_scene(folder):

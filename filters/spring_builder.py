@@ -37,7 +37,7 @@ from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, sh
 from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE, FibreSet, Scene, Surface
 from muscle_mss.core.springs import (DELAUNAY_REACH, delaunay_springs, fibre_step,
                                      knn_springs, lattice_springs, rest_lengths)
-from muscle_mss.core.validation import placement_problems
+from muscle_mss.core.validation import far_point_problem, placement_problems
 
 from . import array_names as A
 from . import vtk_arrays as V
@@ -109,6 +109,12 @@ def check_placement(blocks, surfaces: dict, bones) -> None:
     fibres inside their muscle, muscles outside the bones at rest) on the filter's inputs, each
     muscle's particles taken as its fibres (in fibre order). The same rules ``muscle-mss
     validate`` applies, so that ParaView refuses the same scenes."""
+    far = [far_point_problem(V.points_of(block), f"{where} block '{name}'")
+           for where, items in ((PARTICLES, blocks), (MUSCLES_FILE, surfaces.items()),
+                                (BONES_FILE, V.blocks(bones, where=BONES_FILE) if bones else ()))
+           for name, block in items if block is not None and block.IsA("vtkPointSet")]
+    if any(far):   # before the surface checks, which such a point breaks for that reason alone
+        raise first_problem([p for p in far if p])
     muscles, fibres = {}, {}
     for name, block in blocks:
         surface = _checked_surface(surfaces.get(name), f"{MUSCLES_FILE} block '{name}'")

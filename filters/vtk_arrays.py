@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.util.numpy_support import (create_vtk_array, get_numpy_array_type,
                                           get_vtk_array_type, vtk_to_numpy)
-from vtkmodules.vtkCommonCore import (vtkDoubleArray, vtkIdTypeArray, vtkPoints,
+from vtkmodules.vtkCommonCore import (vtkDoubleArray, vtkIdTypeArray, vtkOutputWindow, vtkPoints,
                                       vtkStringArray)
 from vtkmodules.vtkCommonDataModel import (vtkCellArray, vtkCompositeDataSet,
                                            vtkMultiBlockDataSet, vtkPolyData, vtkTable)
@@ -81,19 +81,72 @@ def _vtk_copy(values, vtk_type=None):
 
 
 def triangles_of(polydata, where: str = "") -> np.ndarray:
-    """The polygons of a vtkPolyData as (m, 3) int64; raise if any polygon is not a triangle."""
+    """The polygons of a vtkPolyData as (m, 3) int64, then the triangles of its triangle strips
+    (:func:`strip_triangles`, with a warning naming ``where``); raise if any polygon is not a
+    triangle."""
     offsets, connectivity = _cell_array_to_csr(polydata.GetPolys())
     sizes = np.diff(offsets)
     if (sizes != 3).any():
         bad = int(np.flatnonzero(sizes != 3)[0])
         raise MuscleMSSError(f"{where}: polygon {bad} has {int(sizes[bad])} points; "
                              "surfaces must be triangle meshes (apply Triangulate first)")
-    return connectivity.reshape(-1, 3)
+    triangles = connectivity.reshape(-1, 3)
+    if polydata.GetNumberOfStrips() == 0:
+        return triangles
+    from_strips = strip_triangles(*_cell_array_to_csr(polydata.GetStrips()))
+    _warn_once(polydata.GetStrips(),
+               f"{where}: its {polydata.GetNumberOfStrips()} triangle strips are read as "
+               f"{len(from_strips)} triangles (the file is not changed); surfaces are triangle "
+               "lists: apply ParaView's Triangulate filter and save the file to silence this")
+    return np.concatenate([triangles, from_strips])
+
+
+def strip_triangles(offsets, connectivity) -> np.ndarray:
+    """The triangles (m, 3) int64 of triangle strips in CSR form, oriented as VTK orients them
+    (the strip's odd triangles flipped, as ``vtkTriangleFilter`` gives them); the degenerate
+    ones that join strips (a point used twice) left out."""
+    out = []
+    for first, end in zip(offsets[:-1], offsets[1:]):
+        ids = connectivity[first:end]
+        for k in range(len(ids) - 2):
+            a, b, c = ids[k], ids[k + 1], ids[k + 2]
+            if a != b and b != c and a != c:
+                out.append((b, a, c) if k % 2 else (a, b, c))
+    return np.array(out, dtype=np.int64).reshape(-1, 3)
+
+
+_warned = set()
+
+
+def _warn_once(source, text: str) -> None:
+    """Show ``text`` as a VTK warning (ParaView's output messages; stderr in Python) once per
+    ``source`` (a VTK object) as modified: every filter reading the block would say it again."""
+    key = (source.GetAddressAsString("vtkObject"), source.GetMTime())
+    if key not in _warned:
+        _warned.add(key)
+        vtkOutputWindow.GetInstance().DisplayWarningText(f"warning: {text}\n")
 
 
 def lines_of(polydata):
     """The line / polyline cells of a vtkPolyData as CSR ``(offsets (c+1,), connectivity)``."""
     return _cell_array_to_csr(polydata.GetLines())
+
+
+def fibre_lines(polydata, where: str):
+    """:func:`lines_of` a block of fibres; raise :class:`MuscleMSSError` naming ``where`` when it
+    has no line cells but cells of another kind (poly-vertex cells are points without an order
+    to follow, not fibres)."""
+    offsets, connectivity = lines_of(polydata)
+    kinds = [] if len(offsets) > 1 else [(count, kind) for count, kind in (
+        (polydata.GetNumberOfVerts(), "vertex or poly-vertex cells (VTK_VERTEX, VTK_POLY_VERTEX)"),
+        (polydata.GetNumberOfPolys(), "polygons"), (polydata.GetNumberOfStrips(), "strips"))
+        if count]
+    if kinds:
+        raise MuscleMSSError(
+            f"{where}: holds {' and '.join(f'{n} {kind}' for n, kind in kinds)}; fibres must be "
+            "polylines (VTK_POLY_LINE), one line cell per fibre through its points from origin "
+            "to insertion: convert the block's cells to polylines")
+    return offsets, connectivity
 
 
 def make_polydata(points, triangles=None, line_offsets=None, line_connectivity=None,

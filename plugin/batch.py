@@ -12,6 +12,7 @@ blocks of time points in time order, warm starting each from the one before it w
 state and the ranks give the serial run's results).
 """
 import argparse
+import contextlib
 import csv
 import glob
 import os
@@ -50,8 +51,7 @@ def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
 
     from muscle_mss.core.errors import MuscleMSSError
-    from muscle_mss.filters import array_names as A
-    from muscle_mss.filters import motion_run, run_output
+    from muscle_mss.filters import run_output
     from muscle_mss.filters.run_options import settings_from, writing_from
 
     # Rank 0 compiles the kernels once (when this Python's cache is cold) while the others
@@ -59,28 +59,48 @@ def main(argv=None) -> int:
     if rank == 0:
         from muscle_mss.filters.warm_up import ensure_compiled, stderr_notice
         ensure_compiled(stderr_notice)
-    # Rank 0 checks OUT (and clears an earlier run's results with --overwrite) before any
-    # rank writes; all ranks stop if it refuses.
     failed = 0
     try:
-        writing = writing_from(args)
+        writing, settings = writing_from(args), settings_from(args)
     except MuscleMSSError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    if rank == 0:
+    # Rank 0 checks OUT (and removes an earlier run's files with --overwrite) before any rank
+    # writes, and alone holds OUT's lock until every rank is done (every rank adds its files
+    # to the manifest); all ranks stop if it refuses.
+    with contextlib.ExitStack() as held:
+        if rank == 0:
+            try:
+                _, note = held.enter_context(run_output.output_folder(args.out, args.overwrite))
+                if note:
+                    print(note, file=sys.stderr)
+            except MuscleMSSError as err:
+                print(f"error: {err}", file=sys.stderr)
+                failed = 1
+        if _any_rank(controller, size, failed):
+            return 1
         try:
-            run_output.check_output_folder(args.out, args.overwrite)
-        except MuscleMSSError as err:
-            print(f"error: {err}", file=sys.stderr)
-            failed = 1
-    if _any_rank(controller, size, failed):
-        return 1
-    partial = os.path.join(args.out, f".summary.rank{rank}.csv")
+            return _run(args, controller, rank, size, settings, writing)
+        except KeyboardInterrupt as err:    # the lock is released on the way out
+            from muscle_mss.filters.base import interrupted_message
+            print(f"rank {rank}: {interrupted_message(err, 'muscle_mss.plugin.batch')}",
+                  file=sys.stderr)
+            return 130
+
+
+def _run(args, controller, rank, size, settings, writing) -> int:
+    """Every rank's time points, then rank 0's summary and index; 1 when a rank failed."""
+    from muscle_mss.core.errors import MuscleMSSError
+    from muscle_mss.filters import array_names as A
+    from muscle_mss.filters import motion_run, output_folder, run_output
+    failed = 0
+    partial = f".summary.rank{rank}.csv"
     try:
         pipeline, rows = motion_run.run_motion(
-            args.scene, args.out, settings_from(args),
+            args.scene, args.out, settings,
             part=(rank, size), series_names=writing.series, compressor=writing.compressor)
-        run_output.write_csv(partial, run_output.SUMMARY_COLUMNS,
+        output_folder.claim(args.out, partial)
+        run_output.write_csv(os.path.join(args.out, partial), run_output.SUMMARY_COLUMNS,
                              ([r[c] for c in run_output.SUMMARY_COLUMNS] for r in rows))
     except MuscleMSSError as err:
         print(f"rank {rank}: error: {err}", file=sys.stderr)

@@ -153,6 +153,37 @@ def muscle_into_bone(scene):
     fibres.points[:] = (fibres.points - centre) * 0.2 + target
 
 
+def far_point(kind, point, block=None, fibre=None):
+    """Point ``point`` of the first (or named) block of ``kind`` (muscles, bones, fibres; of
+    fibre ``fibre``) moved to 1e12 mm in x: one wrong vertex in an otherwise right scene."""
+    def mutate(scene):
+        items = getattr(scene, kind)
+        target = items[block or _first(items)]
+        first = 0 if fibre is None else target.offsets[fibre]
+        target.points[first + point, 0] = 1e12
+    return mutate
+
+
+def fibres_as_poly_vertices(relative):
+    """The fibres of one ``.vtp`` as one poly-vertex cell each (VTK_POLY_VERTEX), same points."""
+    def mutate(folder):
+        from vtkmodules.vtkCommonDataModel import vtkCellArray
+        from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter
+        reader = vtkXMLPolyDataReader()
+        reader.SetFileName(str(folder / relative))
+        reader.Update()
+        fibres = reader.GetOutput()
+        vertices = vtkCellArray()
+        vertices.DeepCopy(fibres.GetLines())
+        fibres.SetVerts(vertices)
+        fibres.SetLines(vtkCellArray())
+        writer = vtkXMLPolyDataWriter()
+        writer.SetFileName(str(folder / relative))
+        writer.SetInputData(fibres)
+        writer.Write()
+    return mutate
+
+
 # ---- the cases ----------------------------------------------------------------------------
 
 CASES = [
@@ -247,8 +278,8 @@ CASES = [
          r"in metres\? scale it by 1000",
          scene=transform_scene(scale=1e-3)),
     Case("scene-offset-1e12", "the whole scene moved by 1e12 mm",
-         r"muscles.vtm block 'rectus_femoris': a vertex lies 1e\+12 mm from the origin; a scene "
-         r"farther than 10000 mm \(10 m\)",
+         r"(muscles|fibres).vtm block 'rectus_femoris': a vertex lies 1e\+12 mm from the origin; "
+         r"a scene farther than 10000 mm \(10 m\)",
          scene=transform_scene(offset=1e12)),
     Case("muscle-inside-bone", "a muscle shrunk to a fifth and placed inside the femur",
          r"muscles.vtm block 'rectus_femoris': \d+ % of its surface lies inside bones.vtm block "
@@ -266,6 +297,31 @@ CASES = [
          chain=False),
     Case("time-nan", "`--time nan`", r"--time nan: not a finite number",
          options=("--time", "nan"), chain=False),
+    # issue 30: messages that pointed the wrong way or hid the cause
+    Case("muscle-vertex-1e12", "one muscle surface vertex (point 17) moved to 1e12 mm "
+         "(\"surface is oriented inward\", a SystemError in mvc.py, before)",
+         r"muscles.vtm block 'rectus_femoris': point 17 lies 1e\+12 mm from the origin; a point "
+         r"farther than 10000 mm \(10 m\) from the origin is implausible .*1 of the block's \d+ "
+         r"points is, the rest not: correct or remove it",
+         scene=far_point("muscles", 17)),
+    Case("bone-vertex-1e12", "one bone vertex (the femur's point 5) moved to 1e12 mm",
+         r"bones.vtm block 'femur': point 5 lies 1e\+12 mm from the origin; a point farther "
+         r"than 10000 mm \(10 m\)", scene=far_point("bones", 5, block="femur")),
+    Case("fibre-point-1e12", "one fibre point (fibre 2's point 1) moved to 1e12 mm",
+         r"fibres.vtm block 'rectus_femoris': fibre 2's point 1 lies 1e\+12 mm from the origin; "
+         r"a point farther than 10000 mm \(10 m\)", scene=far_point("fibres", 1, fibre=2)),
+    Case("fibres-poly-vertex", "a muscle's fibres as poly-vertex cells (VTK_POLY_VERTEX), not "
+         "polylines (a raw `ValueError: cannot reshape array`, before)",
+         r"fibres.vtm block 'rectus_femoris': holds \d+ vertex or poly-vertex cells "
+         r"\(VTK_VERTEX, VTK_POLY_VERTEX\); fibres must be polylines \(VTK_POLY_LINE\)",
+         files=fibres_as_poly_vertices("fibres/fibres_0.vtp")),
+    Case("tolerance-with-paper", "`--tolerance 0.01` with the paper method, the default (ignored "
+         "silently, before)",
+         r"--tolerance 0.01 applies only to --method quasi-static .*drop --tolerance or add "
+         r"--method quasi-static", options=("--tolerance", "0.01"), chain=False),
+    Case("write-nothing", "`--write ''` (everything written, before)",
+         r"--write '' names no series to write; give one or more of surfaces,fibres,particles",
+         options=("--write", ""), chain=False),
 ]
 
 
@@ -281,7 +337,13 @@ object is ever changed (`tests/test_bad_input.py` checks each folder's files bef
 Anything a filter raises that is not one of our errors reaches the caller the same way, as
 `FILTER: failed unexpectedly with EXCEPTION: MESSAGE at FILE:LINE` (a
 `MemoryError` as `ran out of memory (SIZE ASKED)`); Ctrl-C stops `muscle-mss run` with exit
-code 130 and `interrupted: Ctrl-C while FILTER ran`.
+code 130 and `interrupted: Ctrl-C while FILTER ran` (also when a compiled kernel reports it as
+a `SystemError`; `Ctrl-C while muscle-mss run ran` outside the filters). A filter whose required
+input is not connected says so: `MSS Collision Solver: input 'PosedBones' is not connected; this
+input is required: the posed bone surfaces, …`. Read right, not refused: a `motion.csv` header
+with spaces after its commas, and surfaces made of triangle strips (read as triangles, with a
+warning naming the block; the file is not changed). These, and what a run may do to its output
+folder, are tested in `tests/test_input_messages.py` and `tests/test_output_safety.py`.
 
 The scene-file cases (missing or cut `.vtp`, empty `motion.csv` cells) are checked when a scene
 folder is read by muscle-mss: `muscle-mss validate/run`, the batch, and the plugin's pipeline

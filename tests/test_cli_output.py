@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from muscle_mss.filters import run_output
+from muscle_mss.filters import output_folder, run_output
 from muscle_mss.filters.cli import main
 
 pytest.importorskip("pyvista")  # the CLI's pictures; ParaView's Python has no pyvista
@@ -18,10 +18,13 @@ EARLIER_RUN = {"summary.csv": "time,muscle\n9.0,earlier\n",
                os.path.join("series", "surfaces_0009.vtm"): "an earlier time point\n"}
 
 
-def _earlier_run(folder):
-    for name, text in EARLIER_RUN.items():
+def _earlier_run(folder, *more):
+    """The files of an earlier run, listed in its manifest (as a run writes them), and
+    ``more`` such files."""
+    for name, text in [*EARLIER_RUN.items(), *((name, "earlier\n") for name in more)]:
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_text(text)
+        output_folder.record(str(folder), name)
 
 
 def _files(folder):
@@ -120,8 +123,7 @@ def test_pictures_render_off_screen_without_x_warnings(tmp_path):
 
 def test_batch_with_overwrite_replaces_the_earlier_run(small_scene, small_scene_dir, tmp_path):
     from muscle_mss.plugin.batch import main as batch
-    _earlier_run(tmp_path)
-    (tmp_path / "series" / "surfaces_0099.vtm").write_text("a time point the new run lacks")
+    _earlier_run(tmp_path, os.path.join("series", "surfaces_0099.vtm"))  # a time point more
     assert batch([str(small_scene_dir), str(tmp_path), "--iterations", "3", "--overwrite"]) == 0
     with open(tmp_path / "summary.csv", newline="") as f:
         rows = list(csv.DictReader(f))
