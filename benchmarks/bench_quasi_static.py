@@ -17,6 +17,7 @@ Machine and load in the tables; written to benchmarks/results/quasi_static.md.
 
     python benchmarks/bench_quasi_static.py [--scenes thigh arm] [--sizes 20 80]
         [--ratio 0.01] [--sweep 0 0.001 0.003 0.01 0.03] [--cap 1500] [--walk-cap 300]
+        [--out quasi_static.md]
 """
 from __future__ import annotations
 
@@ -182,8 +183,9 @@ def main(args):
     lines = [
         "# Quasi-static solver with the connective tissue (both demo scenes)", "",
         f"Machine: {machine()}. The machine is shared: the load average (1 min) after "
-        "each row is given.", "",
-        f"Table 1: ConnectiveTissue {args.ratio:g}, Tolerance {DEFAULT_TOLERANCE} mm, cap "
+        "each row is given."]
+    table1_lines = [
+        "", f"Table 1: ConnectiveTissue {args.ratio:g}, Tolerance {DEFAULT_TOLERANCE} mm, cap "
         f"{args.cap} iterations, bones as solids. Tighter: Tolerance "
         f"{DEFAULT_TOLERANCE / 10} mm, cap {3 * args.cap}. No tissue: the same solve at "
         "ConnectiveTissue 0. Paper: the paper relaxation, 500 iterations, no tissue. "
@@ -192,6 +194,8 @@ def main(args):
         "| scene | N | pose | t s | iterations | seconds | converged | last step mm | "
         "to tighter (converged) | to no tissue (converged) | to paper | tissue share % | "
         "load |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    if table1:
+        lines += table1_lines
     for (scene, n, label, t, it, sec, conv, last, tm, tx, tconv, fm, fx, fconv, pm, px,
          share_median, share_max, load) in table1:
         lines.append(f"| {scene} | {n} | {label} | {t:.2f} | {it} | {sec:.2f} | {yes[conv]} "
@@ -217,16 +221,20 @@ def main(args):
                   "|---|---|---|---|---|---|"]
         for mode, count, sec, it, conv, load in rows:
             lines.append(f"| {mode} | {count} | {sec:.1f} | {it} | {conv} | {load:.2f} |")
-    write_result(lines, "quasi_static.md")
+    write_result(lines, args.out)
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", choices=("thigh", "arm"),
                         default=["thigh", "arm"])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[20, 80])
+    parser.add_argument("--sizes", type=int, nargs="*", default=[20, 80],
+                        help="particles per fibre of Table 1 (none: no Table 1)")
     parser.add_argument("--ratio", type=float, default=1e-2)
     parser.add_argument("--sweep", type=float, nargs="*", default=[0, 1e-3, 3e-3, 1e-2, 3e-2])
     parser.add_argument("--cap", type=int, default=1500)
-    parser.add_argument("--walk-cap", type=int, default=300)
+    parser.add_argument("--walk-cap", type=int, default=300,
+                        help="iterations per time point of Table 3 (0: no Table 3)")
+    parser.add_argument("--out", default="quasi_static.md",
+                        help="file name in benchmarks/results/")
     main(parser.parse_args())
