@@ -14,7 +14,10 @@ Energy (g mm^2 / s^2)::
 The contact term is a penalty on every overlapping pair of spheres of different muscles and of
 a muscle sphere with a bone sphere (tendon spheres against bones are exempt, as in the paper),
 or, given :class:`~muscle_mss.core.bone_distance.BoneSolids`, of a muscle particle with a bone
-as a solid (``max(0, r_i + clearance - d(c_i))`` with ``d`` the bone's signed distance: a
+as a solid (``max(0, r_i + clearance - d(c_i))`` with ``d`` the bone's signed distance, looked
+up with a continuous gradient (:mod:`muscle_mss.core.smooth_distance`; the trilinear lookup's
+kinks at cell faces held particles pressed into a bone in place with forces left, and the
+flexed poses never met the tolerance): a
 particle is pushed out along the distance gradient from any depth, where a sphere past a bone's
 shell of spheres is pulled on through it by the springs: on the full demo at the most flexed
 pose the sphere-set solve was still drifting after thousands of iterations, its particles up to
