@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bone_weights import bone_distances
-from .fibre_direction import oriented_fibre_set
+from .fibre_direction import fibre_directions
 from .scene import BONES_FILE, FIBRES_FILE, Scene
 
 ORIGIN, INSERTION = "origin", "insertion"
@@ -72,20 +72,32 @@ def attachment_problems(scene: Scene) -> list:
 def attachment_distance_problems(scene: Scene) -> list:
     """One sentence per named attachment bone that lies far from its end's fibre points while
     another bone lies near them (:data:`ATTACHMENT_REACH`), the fibres taken oriented from
-    origin to insertion (:func:`.fibre_direction.oriented_fibre_set`)."""
+    origin to insertion (:func:`.fibre_direction.fibre_directions`). The distances of every
+    fibre end to every bone are measured in one call (one call per muscle and end took 4 s on
+    the full demo thigh)."""
     names = list(scene.bones)
-    surfaces = [(scene.bones[b].points, scene.bones[b].triangles) for b in names]
     labels = [f"{BONES_FILE} block '{b}'" for b in names]
+    muscles = [(m, f) for m, f in scene.fibres.items()
+               if f.count and (f.origin_bone in names or f.insertion_bone in names)]
+    if not muscles:
+        return []
+    ends = [np.concatenate(fibre_ends(f)) for _, f in muscles]
+    distances = np.split(bone_distances(
+        np.concatenate(ends), [(scene.bones[b].points, scene.bones[b].triangles) for b in names],
+        labels), np.cumsum([len(e) for e in ends])[:-1])
     problems = []
-    for muscle, fibres in scene.fibres.items():
+    for (muscle, fibres), d in zip(muscles, distances):
+        first, last = d[:fibres.count], d[fibres.count:]        # (F, B) each
         given = (fibres.origin_bone, fibres.insertion_bone)
-        if not fibres.count or not any(g in names for g in given):
-            continue
-        oriented = oriented_fibre_set(fibres, scene.bones)[0]
-        for end, bone, points in zip((ORIGIN, INSERTION), given, fibre_ends(oriented)):
+        known = [np.c_[first[:, names.index(b)], last[:, names.index(b)]] if b in names
+                 else None for b in given]
+        reverse = fibre_directions(fibres.points, fibres.offsets, *known).reversed[:, None]
+        for end, bone, at_end in zip((ORIGIN, INSERTION), given,
+                                     (np.where(reverse, last, first),
+                                      np.where(reverse, first, last))):
             if bone not in names:
                 continue
-            mean = bone_distances(points, surfaces, labels).mean(axis=0)
+            mean = at_end.mean(axis=0)
             g, b = names.index(bone), int(np.argmin(mean))
             if mean[g] > ATTACHMENT_REACH >= mean[b]:
                 problems.append(
