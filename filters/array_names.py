@@ -9,6 +9,8 @@ REST_POSITION = "rest_position"      # float64 x3, particle position in the rest
 FIBRE_ID = "fibre_id"                # int32, which fibre of the muscle
 FIBRE_INDEX = "fibre_index"          # int32, place along the fibre, 0 = origin end
 FIBRE_GRID = "fibre_grid"            # int32 x2, (row, col) of the fibre in the cross-section grid
+FIBRE_MIDPOINT = "fibre_midpoint"    # float64 x3 cell data of the Fibre Resampler's polylines:
+#                                      the fibre's middle vertex, mm (its placement check)
 FIXED = "fixed"                      # uint8, 1 for the two end particles of each fibre
 BOUNDARY = "boundary"                # uint8, 1 for particles in collisions and in the MVC cage
 RADIUS = "radius"                    # float64, collision sphere radius, mm (0 if not boundary)

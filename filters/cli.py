@@ -39,8 +39,25 @@ def cmd_validate(args) -> int:
         print(f"{args.scene}: {len(problems)} problem{'s' if len(problems) > 1 else ''}")
         return 1
     print(f"ok: {scene_counts(scene)}")
+    for warning in direction_warnings(scene):
+        print(f"warning: {warning}")
     print(attachment_report(scene))
     return 0
+
+
+def direction_warnings(scene: Scene) -> list:
+    """The sentences of the fibres a run would reverse to run from origin to insertion (the
+    Fibre Resampler's rule, :mod:`muscle_mss.core.fibre_direction`), one per muscle."""
+    from muscle_mss.core.fibre_direction import direction_warning, oriented_fibre_set
+    from muscle_mss.core.scene import FIBRES_FILE
+    warnings = []
+    for name, fibres in scene.fibres.items():
+        directions = oriented_fibre_set(fibres, scene.bones)[1]
+        warning = direction_warning(f"{FIBRES_FILE} block '{name}'", directions,
+                                    fibres.origin_bone, fibres.insertion_bone)
+        if warning:
+            warnings.append(warning)
+    return warnings
 
 
 def attachment_report(scene: Scene) -> str:

@@ -10,6 +10,13 @@ fibres have it), field data ``muscle_name``, the three properties, and ``origin_
 
 The random placement of a muscle is seeded by ``Seed`` together with the muscle's name, so each
 muscle gets the same particles whatever the order or number of the other blocks.
+
+Fibres digitised in both directions are oriented first, on a copy, from the muscle's origin to
+its insertion (:mod:`muscle_mss.core.fibre_direction`): by the distances of their ends to the
+named ``origin_bone`` / ``insertion_bone`` of the optional ``Bones`` input (``bones.vtm``, rest
+pose), else with the muscle's mean fibre direction; a warning names the block and how many fibres
+were reversed. Each fibre's midpoint (of the fibre, not of its particles) is handed on as cell
+data ``fibre_midpoint`` of the display polylines, for the Spring Builder's placement check.
 """
 from __future__ import annotations
 
@@ -17,10 +24,14 @@ import zlib
 
 import numpy as np
 
+from vtkmodules.vtkCommonCore import vtkOutputWindow
+
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.fibres import resample_fibres
-from muscle_mss.core.scene import FIBRES_FILE
-from muscle_mss.core.validation import far_point_problem
+from muscle_mss.core.fibre_direction import (direction_warning, directions_by_bones,
+                                             fibre_directions, reversed_fibres)
+from muscle_mss.core.fibres import check_fibres, resample_fibres
+from muscle_mss.core.scene import BONES_FILE, FIBRES_FILE
+from muscle_mss.core.validation import far_point_problem, fibre_midpoints
 
 from . import array_names as A
 from . import vtk_arrays as V
@@ -69,6 +80,31 @@ def fibre_polylines(block, where: str):
     return points[connectivity], offsets, grid
 
 
+def rest_bone_meshes(bones) -> dict | None:
+    """``{name: (vertices (v, 3), triangles (m, 3))}`` of the rest bones multiblock, or None
+    when the input is not connected."""
+    if bones is None:
+        return None
+    return {name: (V.points_of(block), V.triangles_of(block, f"{BONES_FILE} block '{name}'"))
+            for name, block in V.polydata_blocks(bones, BONES_FILE)}
+
+
+def oriented_polylines(block, points, offsets, bones, where: str):
+    """``(points, warning or None)``: a muscle's fibre points with every fibre running from
+    origin to insertion (a copy when a fibre was reversed), and the sentence that says so."""
+    check_fibres(points, offsets, where)
+    origin, insertion = (V.field(block, array) for array in (A.ORIGIN_BONE, A.INSERTION_BONE))
+    # a name that is not one string is refused downstream (the Rigid Pose Transform)
+    origin, insertion = (b if isinstance(b, str) else None for b in (origin, insertion))
+    if bones is None:
+        directions = fibre_directions(points, offsets)
+    else:
+        directions = directions_by_bones(points, offsets, origin, insertion, bones)
+    if directions.count:
+        points = reversed_fibres(points, offsets, directions.reversed)
+    return points, direction_warning(where, directions, origin, insertion, bones is not None)
+
+
 class FibreResampler(MuscleFilter):
     """Samples every fibre of every muscle into N particles; see the module docstring."""
 
@@ -78,10 +114,18 @@ class FibreResampler(MuscleFilter):
             "(tendon attachment); the fibre is cut into N-1 equal arc-length intervals and every "
             "other particle is placed at a random place inside its own interval (or at the "
             "interval end points when Randomise is off). Output: one particle block per muscle "
-            "with rest_position, fibre_id, fibre_index, fibre_grid (if present) and fixed.")
+            "with rest_position, fibre_id, fibre_index, fibre_grid (if present) and fixed. "
+            "Fibres that run from insertion to origin are reversed first, on a copy, with a "
+            "warning: by the origin and insertion bones when Bones is connected, else with the "
+            "muscle's mean fibre direction.")
     INPUTS = (Port("Fibres", "vtkMultiBlockDataSet",
                    "fibres.vtm: one block per muscle, one polyline per fibre from origin to "
-                   "insertion, optional cell data fibre_grid (row, col)"),)
+                   "insertion, optional cell data fibre_grid (row, col)"),
+              Port("Bones", "vtkMultiBlockDataSet",
+                   "bones.vtm: the rest bone surfaces (optional, but connect it): fibres that "
+                   "run from insertion to origin are reversed by the distances of their ends "
+                   "to the block's origin_bone and insertion_bone; without it they follow the "
+                   "muscle's mean fibre direction", optional=True))
     OUTPUTS = (Port("Particles", "vtkMultiBlockDataSet",
                     "particles per muscle, with the fibres as polylines through them"),)
     PROPERTIES = (
@@ -107,10 +151,14 @@ class FibreResampler(MuscleFilter):
         blocks = V.blocks(inputs[0], where=FIBRES_FILE)
         if not blocks:
             raise MuscleMSSError(f"{FIBRES_FILE} has no blocks; it needs one block per muscle")
+        bones = rest_bone_meshes(inputs[1])
         items = []
         for done, (name, block) in enumerate(blocks):
             where = f"{FIBRES_FILE} block '{name}'"
             points, offsets, grid = fibre_polylines(block, where)
+            points, warning = oriented_polylines(block, points, offsets, bones, where)
+            if warning:
+                vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {warning}\n")
             particles, fibre_id, fibre_index, fixed = resample_fibres(
                 points, offsets, n, randomise, muscle_seed(seed, name), where)
             out = V.make_polydata(particles, line_offsets=np.arange(0, len(particles) + 1, n),
@@ -121,6 +169,7 @@ class FibreResampler(MuscleFilter):
             if grid is not None:
                 V.set_point_array(out, A.FIBRE_GRID, grid[fibre_id])
             V.set_point_array(out, A.FIXED, fixed)
+            V.set_cell_array(out, A.FIBRE_MIDPOINT, fibre_midpoints(points, offsets))
             V.set_field(out, A.MUSCLE_NAME, name)
             for array in (A.ORIGIN_BONE, A.INSERTION_BONE):
                 if V.field(block, array) is not None:

@@ -61,6 +61,7 @@ def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
     solver, deformer, probe = MSSCollisionSolver(), MVCSurfaceDeformer(), VolumeErrorProbe()
     muscles, fibres, bones, motion = scene_readers(scene_folder)
     resampler.SetInputConnection(0, fibres.GetOutputPort())
+    resampler.SetInputConnection(1, bones.GetOutputPort())
     springs.SetInputConnection(0, resampler.GetOutputPort())
     springs.SetInputConnection(1, muscles.GetOutputPort())
     springs.SetInputConnection(2, bones.GetOutputPort())

@@ -58,6 +58,16 @@ NO_BONES_WARNING = (
     "(the reader that feeds the Rigid Pose Transform's Bones) to the Spring Builder's Bones "
     "input to see the radii the solver uses.")
 LATTICE_NEIGHBOURHOOD = {LAYOUT_LATTICE_6: 6, LAYOUT_LATTICE_26: 26}
+MIN_PARTICLES_PER_FIBRE = {LAYOUT_LATTICE_6: 8, LAYOUT_LATTICE_26: 8, LAYOUT_DELAUNAY: 8,
+                           LAYOUT_KNN: 5}
+"""The coarsest resolution N each layout supports, measured on the small demo scenes (the thigh
+at t = 0.5 s, the arm at 130 degrees; issue 30): below it a muscle's surface was carried up to
+0.3-4.6 m off and its volume error reached 11-2767 % (lattice-26 at N = 3: 40 % and 418 mm on
+the thigh, 753 % and 4.6 m on the arm); from it on, at most 5.4 % and 59 mm on the thigh and 31 %
+(k-NN at N = 5; 28 % lattice-26 at N = 8) on the arm, whose default N = 20 gives 8.5 %."""
+RESOLUTION_RULE = ("with fewer particles along the fibres the cage of boundary particles that "
+                   "carries the muscle surface (mean value coordinates) is too coarse to follow "
+                   "it, and surface points are flung far from the muscle")
 PARTICLES = "particles"
 
 
@@ -103,6 +113,31 @@ def _checked_surface(block, where):
     return surface
 
 
+def _attachment_names(block) -> tuple:
+    """The ``(origin_bone, insertion_bone)`` a particle block names (None where not one
+    string)."""
+    return tuple(value if isinstance(value, str) else None
+                 for value in (V.field(block, A.ORIGIN_BONE), V.field(block, A.INSERTION_BONE)))
+
+
+def check_resolution(blocks, layout: str) -> None:
+    """Refuse particles too coarse along the fibres for ``layout``
+    (:data:`MIN_PARTICLES_PER_FIBRE`), naming the block, N and the rule."""
+    least = MIN_PARTICLES_PER_FIBRE[layout]
+    for name, block in blocks:
+        fibre_id = (V.point_array(block, A.FIBRE_ID, required=False, dtype=np.int64)
+                    if block.IsA("vtkPolyData") else None)
+        if fibre_id is None or len(fibre_id) == 0:
+            continue
+        n = int(np.unique(fibre_id, return_counts=True)[1].min())
+        if n < least:
+            raise MuscleMSSError(
+                f"{PARTICLES} block '{name}': {n} particles per fibre (the Fibre Resampler's "
+                f"ParticlesPerFibre, muscle-mss --resolution) are too few for the {layout} "
+                f"layout, which needs at least {least}: {RESOLUTION_RULE}; set "
+                f"ParticlesPerFibre (--resolution) to {least} or more")
+
+
 def check_placement(blocks, surfaces: dict, bones) -> None:
     """The plausibility rules of a scene in millimetres
     (:func:`muscle_mss.core.validation.placement_problems`: sizes, distance from the origin,
@@ -129,7 +164,16 @@ def check_placement(blocks, surfaces: dict, bones) -> None:
             continue
         order = np.lexsort((fibre_index.reshape(-1), fibre_id.reshape(-1)))
         counts = np.unique(fibre_id, return_counts=True)[1]
-        fibres[name] = FibreSet(rest[order], np.concatenate([[0], np.cumsum(counts)]))
+        offsets = np.concatenate([[0], np.cumsum(counts)])
+        points = rest[order]
+        midpoints = V.cell_array(block, A.FIBRE_MIDPOINT, required=False)
+        if midpoints is not None and midpoints.size == 3 * len(counts):
+            # the fibres' own midpoints (the Fibre Resampler's): a few particles per fibre
+            # would put a curved fibre's middle outside its muscle
+            first, last = points[offsets[:-1]], points[offsets[1:] - 1]
+            points = np.stack([first, midpoints.reshape(-1, 3), last], axis=1).reshape(-1, 3)
+            offsets = 3 * np.arange(len(counts) + 1)
+        fibres[name] = FibreSet(points, offsets, None, *_attachment_names(block))
     rest_bones = {}
     if bones is not None:
         for name, block in V.blocks(bones, where=BONES_FILE):
@@ -222,6 +266,8 @@ class SpringBuilder(MuscleFilter):
             if self.progress(0.9 * (done + 1) / len(blocks)):
                 raise MuscleMSSError(f"stopped by the user after {done + 1} of {len(blocks)} "
                                      "muscles")
+        # after each block's own checks (grid, surface), before anything is solved
+        check_resolution(blocks, layout)
         sizes = [len(m["rest"]) for m in models]
         radii = shrink_radii(np.concatenate([m["rest"] for m in models]),
                              np.concatenate([m["radius"] for m in models]),

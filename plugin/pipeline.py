@@ -52,7 +52,7 @@ def build_pipeline(scene_folder, show=True, settings=None):
                                                 FileName=[path("bones.vtm")])
     p["motion"] = simple.CSVReader(registrationName="motion.csv", FileName=[path("motion.csv")])
     p["Fibre Resampler"] = simple.FibreResampler(registrationName="Fibre Resampler",
-                                                 Fibres=p["fibres"])
+                                                 Fibres=p["fibres"], Bones=p["bones"])
     p["Spring Builder"] = simple.SpringBuilder(registrationName="Spring Builder",
                                                Particles=p["Fibre Resampler"],
                                                Surfaces=p["muscles"], Bones=p["bones"])

@@ -32,7 +32,7 @@ def scenes(tmp_path_factory):
 def test_muscle_mss_run_names_the_cause(case, scenes, tmp_path):
     folder, digest = scenes(case)
     code, message, stderr = B.run_cli(case, folder, tmp_path / "out")
-    assert code == 2, stderr
+    assert code == (0 if case.warns else 2), stderr
     assert B.matches(case.expect, message), message
     assert B.folder_digest(folder) == digest
 
@@ -62,11 +62,10 @@ def test_an_upstream_error_is_the_only_message(scenes, tmp_path, capfd, caplog):
     """The filters downstream of a failed one empty their outputs without complaints of their
     own (they used to end the output with "Volume-Error Probe: DeformedSurfaces: has no muscle
     blocks"). VTK's messages reach stderr, or Python's logging once pyvista (the preview
-    pictures) has taken over VTK's output window: both are read."""
+    pictures) has taken over VTK's output window, or run_cli's output window: all are read."""
     case = next(c for c in B.CASES if c.name == "resolution-1")
     folder, _ = scenes(case)
-    B.run_cli(case, folder, tmp_path / "out")
-    err = capfd.readouterr().err + caplog.text
+    err = B.run_cli(case, folder, tmp_path / "out")[2] + capfd.readouterr().err + caplog.text
     assert "Fibre Resampler: property ParticlesPerFibre is 1" in err
     for downstream in ("Spring Builder", "MSS Collision Solver", "MVC Surface Deformer",
                        "Volume-Error Probe"):

@@ -320,7 +320,7 @@ def test_ragged_grid_is_refused_naming_the_muscle():
     fibre_set, surface = spindle([0, 0, 0], rows=3, cols=3)
     fibre_set.grid[4] = (5, 5)
     fibres = fibres_to_vtk({"gracilis": fibre_set})
-    particles = resample(fibres, ParticlesPerFibre=4)
+    particles = resample(fibres, ParticlesPerFibre=5)   # k-NN's coarsest
     before = snapshot(particles)
     with pytest.raises(MuscleMSSError, match="block 'gracilis': fibre_grid has no fibre at"):
         build(particles, surfaces_to_vtk({"gracilis": surface}))
