@@ -41,7 +41,9 @@ simulation of hyperelastic materials") whose initial inverse Hessian is ``(A + K
 the spring Laplacian weighted by stiffness, fixed particles' rows and columns removed,
 factorised once per topology (one banded Cholesky factor per muscle, :class:`~.preconditioner.Preconditioner`),
 and ``K`` each muscle's rank-one volume stiffness ``(B / V0) g g^T``, ``g = dV/dx`` at the
-current state (Sherman-Morrison). A step of ``A^-1`` alone is the local/global step of Liu et
+state of every :data:`~.driver.VOLUME_REFRESH`-th iteration (Sherman-Morrison; refreshing ``g``
+every iteration doubles the triangular solves, and an initial inverse Hessian held for a few
+iterations is as good a start for the history). A step of ``A^-1`` alone is the local/global step of Liu et
 al. 2013; the history of the last :attr:`~muscle_mss.core.settings.QuasiStaticSettings.history` steps corrects it
 towards Newton's. Contacts are left out of ``A``: a diagonal ``w`` on every sphere particle
 pins the free surface (the walking pose of the full demo then did not converge in 500

@@ -18,7 +18,7 @@ from ..settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, TERMINATION_BUDGET,
                         TERMINATION_ITERATIONS, SolverSettings)
 from ..solid_contacts import solid_grid, solid_state
 from .energy import ContactEnergy
-from .lbfgs import LBFGSHistory, direction, largest_move, settled
+from .lbfgs import LBFGSHistory, direction, inner, largest_move, settled
 from .preconditioner import InitialInverseHessian, preconditioner
 
 ARMIJO = 1e-4                   # sufficient decrease of the line search
@@ -26,6 +26,10 @@ BACKTRACKS = 40                 # line search halvings before the solve gives up
 # Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
 # fraction of the energy is rounding, not an increase (the last steps of a tight solve).
 ENERGY_ROUNDING = 1e-13
+# Iterations between updates of the volume gradient in the initial inverse Hessian (each update
+# solves the spring matrix for it: three more columns). An initial inverse Hessian held for a
+# few iterations is still positive definite; the volume term's stiff mode changes slowly.
+VOLUME_REFRESH = 10
 
 
 @dataclass
@@ -168,7 +172,8 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
             energy_of.contact_figures()
         record.energy[done] = energy
         tick = time.perf_counter()
-        h0 = InitialInverseHessian(pre, free_muscle, volume_stiffness, volume_gradient)
+        if done % VOLUME_REFRESH == 0:
+            h0 = InitialInverseHessian(pre, free_muscle, volume_stiffness, volume_gradient)
         step, largest, slope = _step(gradient, history, h0, record.residual, done, tolerance)
         solve_seconds += time.perf_counter() - tick
         done += 1
@@ -186,9 +191,9 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
         trial, trial_energy, trial_gradient, trial_volume = trial
         moved = trial - position
         change = trial_gradient - gradient
-        curvature = float(np.vdot(moved, change))
-        if settings.quasi_static.history and curvature > 1e-12 * float(np.linalg.norm(moved)
-                                                                       * np.linalg.norm(change)):
+        curvature = inner(moved, change)
+        if settings.quasi_static.history and curvature > 1e-12 * np.sqrt(
+                inner(moved, moved) * inner(change, change)):
             history.add(moved, change, 1.0 / curvature)
         record.mean_move[done - 1] = np.bincount(free_muscle, np.sqrt(np.einsum(
             "ij,ij->i", moved, moved)), minlength=n_muscles) / sizes
@@ -224,12 +229,12 @@ def _step(gradient, history, h0, residual, done, tolerance):
         if largest_move(plain) > tolerance:
             history.clear()
             step, largest = plain, largest_move(plain)
-    slope = float(np.vdot(gradient, step))
+    slope = inner(gradient, step)
     if slope >= 0.0 and largest > 0.0:
         history.clear()
         step = -h0(gradient)
         largest = largest_move(step)
-        slope = float(np.vdot(gradient, step))
+        slope = inner(gradient, step)
     return step, largest, slope
 
 

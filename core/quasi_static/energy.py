@@ -123,24 +123,25 @@ def sphere_contact_energy(x, gradient, weight, particle, radius, fixed, mm_begin
 
 
 @njit(cache=True, parallel=True)
-def solid_contact_energy(x, gradient, weight, particle, radius, fixed, clearance, transforms,
-                         grid, sphere_energy, overlaps, deepest):
-    """The contact penalty of every free muscle sphere against the bones as solids: ``w / 2
-    max(0, r_i + clearance_b - d_b(c_i))^2`` per bone ``b``, ``d_b`` its signed distance
+def solid_contact_energy(x, gradient, weight, particle, radius, near_bones, clearance,
+                         transforms, grid, sphere_energy, overlaps, deepest):
+    """The contact penalty of free muscle spheres against the bones as solids: ``w / 2
+    max(0, r_i + clearance_b - d_b(c_i))^2`` per bone ``b`` that ``near_bones[i, b]`` marks
+    (the others are out of reach, :func:`near_solids`), ``d_b`` its signed distance
     (continuously differentiable, :mod:`muscle_mss.core.smooth_distance`, so that no particle
     rests on a kink of the energy; ``grid`` the fields sampled in the bones' rest
     frames, ``transforms`` (b, 3, 4) rest to posed), pushing along the distance gradient from
-    whatever depth. Added to ``gradient``, ``sphere_energy``, ``overlaps[:, 1]`` and
-    ``deepest`` (after :func:`sphere_contact_energy`)."""
+    whatever depth. Added to ``gradient``; per sphere its energy, overlapping bones and deepest
+    overlap written to ``sphere_energy``, ``overlaps[:, 1]`` and ``deepest``."""
     for i in prange(particle.shape[0]):
-        if fixed[i]:
-            continue
         p = particle[i]
         gx, gy, gz = 0.0, 0.0, 0.0
         e = 0.0
         count = 0
-        worst = deepest[i]
+        worst = 0.0
         for b in range(transforms.shape[0]):
+            if not near_bones[i, b]:
+                continue
             qx, qy, qz = to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
             value, hx, hy, hz = smooth_sample(b, qx, qy, qz, grid)
             pen = radius[i] + clearance[b] - value
@@ -155,25 +156,40 @@ def solid_contact_energy(x, gradient, weight, particle, radius, fixed, clearance
         gradient[0, p] += gx
         gradient[1, p] += gy
         gradient[2, p] += gz
-        sphere_energy[i] += e
-        overlaps[i, 1] += count
+        sphere_energy[i] = e
+        overlaps[i, 0] = 0
+        overlaps[i, 1] = count
         deepest[i] = worst
 
 
 @njit(cache=True, parallel=True)
 def near_solids(x, particle, radius, reach, transforms, grid, near):
-    """``near[i]``: whether particle ``particle[i]`` lies within its ``radius[i]`` plus
-    ``reach[b]`` (mm) of some bone ``b`` as a solid (its signed distance in ``grid``, posed by
+    """``near[i, b]``: whether particle ``particle[i]`` lies within its ``radius[i]`` plus
+    ``reach[b]`` (mm) of bone ``b`` as a solid (its signed distance in ``grid``, posed by
     ``transforms``)."""
     for i in prange(particle.shape[0]):
         p = particle[i]
-        near[i] = False
         for b in range(transforms.shape[0]):
             qx, qy, qz = to_rest(transforms, b, x[0, p], x[1, p], x[2, p])
-            value = sample(b, qx, qy, qz, grid)[0]
-            if value < radius[i] + reach[b]:
-                near[i] = True
-                break
+            near[i, b] = sample(b, qx, qy, qz, grid)[0] < radius[i] + reach[b]
+
+
+@njit(cache=True)
+def set_free(x, free, positions):
+    """``x[:, free] = positions.T``: the free particles' positions (f, 3) into ``x`` (3, n)."""
+    for i in range(free.shape[0]):
+        for axis in range(3):
+            x[axis, free[i]] = positions[i, axis]
+
+
+@njit(cache=True)
+def free_rows(field, free):
+    """``field[:, free].T`` as a new (f, 3) array, from ``field`` (3, n)."""
+    out = np.empty((free.shape[0], 3))
+    for i in range(free.shape[0]):
+        for axis in range(3):
+            out[i, axis] = field[axis, free[i]]
+    return out
 
 
 @njit(cache=True)
@@ -224,13 +240,13 @@ class ContactEnergy:
         self.solid_energy = np.zeros(k)
         self.solid_overlaps = np.zeros((k, 2), dtype=np.int64)
         self.solid_deepest = np.zeros(k)
-        self.solid_fixed = np.zeros(k, dtype=np.bool_)
         # the solid points within their radius plus clearance plus the skin of a bone when
         # the list was built (at positions solid_built): the others cannot touch a bone
         # before one of them moves half the skin (a sampled distance changes by at most sqrt(3)
         # times a move), so the penalty skips them
         self.solid_built = np.zeros((3, k))
-        self.solid_mask = np.zeros(k, dtype=np.bool_)
+        self.solid_near = np.zeros((k, len(solids.clearance) if solids is not None else 0),
+                                   dtype=np.bool_)
         self.near = None                 # (indices into solid_points, their particles, ...)
         self.built = np.zeros((3, ns))
         self.bone_table = None
@@ -278,17 +294,17 @@ class ContactEnergy:
         self.solid_built[:] = self.x[:, self.solid_points]
         near_solids(self.x, self.solid_points, self.solid_radius,
                     solids.clearance + self.skin, solids.transforms, solids.fields.grid(),
-                    self.solid_mask)
-        index = np.flatnonzero(self.solid_mask)
+                    self.solid_near)
+        index = np.flatnonzero(self.solid_near.any(axis=1))
         k = len(index)
         self.near = (index, self.solid_points[index], self.solid_radius[index],
-                     self.solid_fixed[index], np.zeros(k), np.zeros((k, 2), dtype=np.int64),
-                     np.zeros(k))
+                     np.ascontiguousarray(self.solid_near[index]), np.zeros(k),
+                     np.zeros((k, 2), dtype=np.int64), np.zeros(k))
 
     def evaluate(self, free_positions):
         """Set the free particles to ``free_positions`` (f, 3) and return ``(energy, gradient
         (f, 3), volume gradient (f, 3))``; the contact statistics stay on the object."""
-        self.x[:, self.free] = free_positions.T
+        set_free(self.x, self.free, np.ascontiguousarray(free_positions, dtype=np.float64))
         tick = time.perf_counter()
         springs = self.springs
         cages = self.prep.cages
@@ -309,21 +325,20 @@ class ContactEnergy:
         if self.solids is not None and len(self.solid_points):
             solids = self.solids
             self._refresh_near_solids()
-            index, points, radius, fixed, energy, overlaps, deepest = self.near
-            for array in (self.solid_energy, self.solid_overlaps, self.solid_deepest, energy,
-                          overlaps, deepest):
+            index, points, radius, near_bones, energy, overlaps, deepest = self.near
+            for array in (self.solid_energy, self.solid_overlaps, self.solid_deepest):
                 array[:] = 0
-            solid_contact_energy(self.x, self.gradient, self.weight, points, radius, fixed,
-                                 solids.clearance, solids.transforms, solids.fields.grid(),
-                                 energy, overlaps, deepest)
+            solid_contact_energy(self.x, self.gradient, self.weight, points, radius,
+                                 near_bones, solids.clearance, solids.transforms,
+                                 solids.fields.grid(), energy, overlaps, deepest)
             self.solid_energy[index] = energy
             self.solid_overlaps[index] = overlaps
             self.solid_deepest[index] = deepest
         self.seconds[1] += time.perf_counter() - tick
         energy = float(self.muscle_energy.sum() + self.sphere_energy.sum()
                        + self.solid_energy.sum())
-        return (energy, np.ascontiguousarray(self.gradient[:, self.free].T),
-                np.ascontiguousarray(self.volume_gradient[:, self.free].T))
+        return (energy, free_rows(self.gradient, self.free),
+                free_rows(self.volume_gradient, self.free))
 
     def contact_figures(self):
         """``(muscle pairs, bone pairs, deepest overlap mm)`` at the last evaluation."""

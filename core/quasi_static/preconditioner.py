@@ -1,7 +1,8 @@
 """The constant part of the quasi-static solve's Hessian: the spring Laplacian on the free
 particles, factorised muscle by muscle once per topology (banded Cholesky), and the initial
 inverse Hessian of the L-BFGS iterations, that factor corrected by each muscle's rank-one volume
-stiffness (Sherman-Morrison)."""
+stiffness (Sherman-Morrison). The muscles' triangular solves run in one parallel kernel
+(:func:`solve_banded_blocks`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -11,34 +12,85 @@ import scipy.linalg as linalg
 import scipy.sparse as sparse
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from numba import njit, prange
+
 from ..connective_tissue import tissue_stiffness
 from ..errors import MuscleMSSError
 from ..model import MSSModel, PreparedModel
+
+
+@njit(cache=True, parallel=True, fastmath={"reassoc"})
+def solve_banded_blocks(factors, factor_ptr, widths, rows, rows_ptr, rhs, out, work):
+    """``out = A^-1 rhs`` for ``rhs`` (f, c), ``A`` block diagonal, block ``k`` the rows
+    ``rows[rows_ptr[k]:rows_ptr[k + 1]]`` (in its factor's order) with the lower Cholesky
+    factor of bandwidth ``widths[k]`` stored column by column from ``factors[factor_ptr[k]]``
+    (column ``j``'s diagonal then its ``widths[k]`` entries below; the transpose of LAPACK's
+    lower banded layout). ``work`` (c, f) scratch. One thread per block, so the result does
+    not depend on the number of threads; the sums over a column's contiguous ``widths[k]``
+    entries are vectorised (``fastmath`` lets them reassociate)."""
+    c = rhs.shape[1]
+    for block in prange(widths.shape[0]):
+        w = widths[block]
+        first = rows_ptr[block]
+        k = rows_ptr[block + 1] - first
+        base = factor_ptr[block]
+        for col in range(c):
+            y = work[col, first:first + k]
+            for j in range(k):
+                y[j] = rhs[rows[first + j], col]
+        for j in range(k):                      # L y = b, column by column
+            column = factors[base + j * (w + 1):base + (j + 1) * (w + 1)]
+            top = min(w, k - 1 - j)
+            for col in range(c):
+                y = work[col, first:first + k]
+                value = y[j] / column[0]
+                y[j] = value
+                for t in range(1, top + 1):
+                    y[j + t] -= column[t] * value
+        for j in range(k - 1, -1, -1):          # L^T x = y
+            column = factors[base + j * (w + 1):base + (j + 1) * (w + 1)]
+            top = min(w, k - 1 - j)
+            for col in range(c):
+                y = work[col, first:first + k]
+                total = 0.0
+                for t in range(1, top + 1):
+                    total += column[t] * y[j + t]
+                y[j] = (y[j] - total) / column[0]
+        for col in range(c):
+            for j in range(k):
+                out[rows[first + j], col] = work[col, first + j]
 
 
 @dataclass
 class Preconditioner:
     """The spring Laplacian ``L`` on the free particles, factorised muscle by muscle.
 
-    ``free`` (f,) the free particles (solver order); ``blocks`` per muscle ``(rows, factor)``:
-    ``rows`` (k,) positions in ``free`` in the factor's order (the smaller bandwidth of the
-    particles ordered slice by slice along the fibres and of reverse Cuthill-McKee), ``factor``
-    the lower banded Cholesky factor (LAPACK layout); ``stiffest`` (g/s^2) the largest sum of
-    one particle's spring stiffnesses (the contact stiffness's unit); ``bandwidth`` the largest
-    block's; ``tissue`` (n,) g/s^2 every particle's connective tissue stiffness (solver order,
+    ``free`` (f,) the free particles (solver order); the factors as
+    :func:`solve_banded_blocks` takes them: ``rows`` (f,) positions in ``free`` muscle by
+    muscle, each in its factor's order (the smaller bandwidth of the particles ordered slice by
+    slice along the fibres and of reverse Cuthill-McKee), ``rows_ptr`` (B + 1,), ``widths``
+    (B,) bandwidths, ``factors`` the lower banded Cholesky factors column by column, from
+    ``factor_ptr`` (B,); ``stiffest`` (g/s^2) the largest sum of one particle's spring
+    stiffnesses (the contact stiffness's unit); ``bandwidth`` the largest block's; ``tissue``
+    (n,) g/s^2 every particle's connective tissue stiffness (solver order,
     :func:`~muscle_mss.core.connective_tissue.tissue_stiffness`), on ``L``'s diagonal."""
 
     free: np.ndarray
-    blocks: list
+    rows: np.ndarray
+    rows_ptr: np.ndarray
+    widths: np.ndarray
+    factors: np.ndarray
+    factor_ptr: np.ndarray
     stiffest: float
     bandwidth: int
     tissue: np.ndarray
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """``A^-1 rhs`` for ``rhs`` (f, c)."""
+        rhs = np.ascontiguousarray(rhs)
         out = np.empty_like(rhs)
-        for rows, factor_ in self.blocks:
-            out[rows] = linalg.cho_solve_banded((factor_, True), rhs[rows], check_finite=False)
+        solve_banded_blocks(self.factors, self.factor_ptr, self.widths, self.rows,
+                            self.rows_ptr, rhs, out, np.empty((rhs.shape[1], len(rhs))))
         return out
 
 
@@ -109,11 +161,26 @@ def preconditioner(model: MSSModel, prep: PreparedModel,
                 f"'{model.names[m]}': some of its free particles are joined to no fixed "
                 "particle through springs (they would float away); fix its tendon ends or use "
                 "the paper relaxation") from None
-        blocks.append((rows[order], factor_))
+        blocks.append((rows[order], np.ascontiguousarray(factor_.T).ravel(), width))
         widest = max(widest, width)
-    result = Preconditioner(free, blocks, stiffest, widest, tissue)
+    result = Preconditioner(free, *_packed(blocks), stiffest, widest, tissue)
     prep.cache[key] = result
     return result
+
+
+def _packed(blocks):
+    """``(rows, rows_ptr, widths, factors, factor_ptr)`` of :class:`Preconditioner` from the
+    blocks ``(rows (k,), factor column by column (k (w + 1),), w)``."""
+    def joined(arrays, dtype):
+        return np.concatenate([np.zeros(0, dtype)] + [np.asarray(a, dtype) for a in arrays])
+
+    def starts(sizes):
+        return np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)]).astype(np.int64)
+
+    return (joined([r for r, _, _ in blocks], np.int64), starts([len(r) for r, _, _ in blocks]),
+            np.array([w for _, _, w in blocks], dtype=np.int64),
+            joined([f for _, f, _ in blocks], np.float64),
+            starts([len(f) for _, f, _ in blocks])[:-1])
 
 
 def model_springs(model: MSSModel, prep: PreparedModel):
