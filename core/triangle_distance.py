@@ -323,9 +323,9 @@ class PreparedSurface:
     """A closed triangle surface ready for exact signed distances: ``mesh``, its
     :class:`TriangleMesh` (pseudo-normals), and ``tree``, its :class:`TriangleTree`."""
 
-    def __init__(self, points, triangles, where):
+    def __init__(self, points, triangles, where, checked=True):
         points, triangles = checked_surface(points, triangles, where)
-        problems = surface_problems(points, triangles)
+        problems = surface_problems(points, triangles) if checked else None
         if problems:
             raise MuscleMSSError(f"{where} {problems[0]}; a signed distance needs a closed, "
                                  "outward-oriented surface")
@@ -369,6 +369,19 @@ def exact_signed_distance(points, triangles, queries, where="surface") -> np.nda
     if len(queries):
         exact_at_queries(queries, query_chunks(len(queries)), surface.mesh, surface.tree, out)
     return out
+
+
+def unsigned_distance(points, triangles, queries) -> np.ndarray:
+    """(q,) mm: the distance of ``queries`` (q, 3) mm to the nearest triangle of ``points``
+    (n, 3) mm, ``triangles`` (m, 3), a surface that need not be closed or oriented (a cage
+    carried by the particles); prepared for this call only, not kept in
+    :data:`PREPARED_SURFACES`."""
+    queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+    surface = PreparedSurface(points, triangles, "surface", checked=False)
+    out = np.empty(len(queries))
+    if len(queries):
+        exact_at_queries(queries, query_chunks(len(queries)), surface.mesh, surface.tree, out)
+    return np.abs(out)
 
 
 def inside_surface(points, triangles, queries, sampled, error_bound, where="surface"):

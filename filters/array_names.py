@@ -60,6 +60,11 @@ NEW_IN_BONE_VERTICES = "new_in_bone_vertices"  # float64, surface vertices insid
 NEW_IN_BONE_DEPTH_MM = "new_in_bone_depth_mm"  # float64, mm, the deepest of them
 NEW_IN_BONE_VERTICES_AFTER = "new_in_bone_vertices_after_push"  # the same after the push out
 NEW_IN_BONE_DEPTH_AFTER_MM = "new_in_bone_depth_after_push_mm"  # (NaN: no bones connected)
+CAGE_DRIFT = "cage_drift"            # float64, mm per deformed vertex: its distance to its
+#                                      cage now minus at rest (core.cage_drift)
+CAGE_DRIFT_MM = "cage_drift_mm"      # float64, mm, field data: the largest of a surface
+CAGE_DRIFT_VERTICES = "cage_drift_vertices"  # float64, field data: vertices drifting more than
+#                                              core.cage_drift.CAGE_DRIFT_LIMIT
 PROJECTION_PASSES = "projection_passes"  # float64, collision passes after the last iteration
 REMAINING_PENETRATION = "remaining_penetration"  # float64, mm, deepest overlap they left
 CONVERGED = "converged"              # float64 1/0, the solve reached its tolerance (solver)

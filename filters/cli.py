@@ -15,6 +15,7 @@ import os
 import sys
 import time as wallclock
 
+from muscle_mss.core.cage_drift import CAGE_DRIFT_LIMIT
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.scene import Scene
@@ -129,16 +130,16 @@ class ProgressBar:
 def summary_table(rows) -> str:
     """Per muscle over the whole motion: mean and max volume error, max fibre strain, max
     sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
-    Deformer's push out) and before the push, the largest share of the connective tissue in
-    the muscle's load (%), mean iterations and seconds per time point; then the mean over
-    muscles."""
+    Deformer's push out) and before the push, the largest drift of a surface vertex off its
+    cage (mm), the largest share of the connective tissue in the muscle's load (%), mean
+    iterations and seconds per time point; then the mean over muscles, and a line for each
+    muscle with vertices that left their cage (:mod:`muscle_mss.core.cage_drift`)."""
     by_muscle = {}
     for r in rows:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
-              f"{'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'tissue %':>8s} "
-              f"{'iters':>6s} "
-              f"{'s/time':>7s}")
+              f"{'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'drift mm':>8s} "
+              f"{'tissue %':>8s} {'iters':>6s} {'s/time':>7s}")
     lines = [header, "-" * len(header)]
     means = []
     for name, rs in by_muscle.items():
@@ -147,20 +148,33 @@ def summary_table(rows) -> str:
         lines.append(f"{name:28s} {means[-1]:14.2f} {max(err):7.2f} "
                      f"{max(float(r[A.MAX_FIBRE_STRAIN]) for r in rs):10.3f} "
                      f"{max(float(r[A.SPHERE_OVERLAP_MM]) for r in rs):10.3f} "
-                     f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM):>10s} "
-                     f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_MM):>10s} "
+                     f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM)} "
+                     f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_MM)} "
+                     f"{_deepest(rs, A.CAGE_DRIFT_MM, 8, 2)} "
                      f"{max(float(r[A.TISSUE_SHARE_PCT]) for r in rs):8.1f} "
                      f"{sum(int(r[A.ITERATIONS]) for r in rs) / len(rs):6.0f} "
                      f"{sum(float(r[A.SECONDS]) for r in rs) / len(rs):7.2f}")
     lines.append("-" * len(header))
     lines.append(f"{'mean over muscles':28s} {sum(means) / max(len(means), 1):14.2f}")
+    for name, rs in by_muscle.items():
+        left = [r for r in rs if float(r[A.CAGE_DRIFT_VERTICES] or 0) > 0]
+        if left:
+            worst = max(left, key=lambda r: float(r[A.CAGE_DRIFT_MM]))
+            lines.append(
+                f"warning: {name}: surface vertices left their cage by more than "
+                f"{CAGE_DRIFT_LIMIT:g} mm at {len(left)} of {len(rs)} time points (at worst "
+                f"{int(worst[A.CAGE_DRIFT_VERTICES])} vertices, up to "
+                f"{float(worst[A.CAGE_DRIFT_MM]):.1f} mm, at t = {float(worst[A.TIME]):g} s; "
+                "point data cage_drift): the surface there does not follow the particles (a "
+                "surface much finer than its cage: raise ParticlesPerFibre)")
     return "\n".join(lines)
 
 
-def _deepest(rows, column) -> str:
-    """The largest value of a column as text, "-" when no row has one (no bones connected)."""
+def _deepest(rows, column, width=10, digits=3) -> str:
+    """The largest value of a column as text ``width`` wide, "-" when no row has one (no bones
+    connected)."""
     values = [float(r[column]) for r in rows if r[column] != ""]
-    return f"{max(values):.3f}" if values else "-"
+    return f"{max(values):{width}.{digits}f}" if values else f"{'-':>{width}s}"
 
 
 def timings_note(timings: dict) -> str:

@@ -31,7 +31,7 @@ from .rigid_pose_transform import RigidPoseTransform
 from .run_output import DEFAULT_COMPRESSOR, SERIES, write_time_point
 from .scene_io import scene_readers
 from .spring_builder import SpringBuilder
-from .volume_error_probe import IN_BONE_COLUMNS, VolumeErrorProbe
+from .volume_error_probe import SURFACE_COLUMNS, VolumeErrorProbe
 
 
 @dataclass
@@ -158,7 +158,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             A.MEAN_FIBRE_STRAIN: fibre_stats[name][0], A.MAX_FIBRE_STRAIN: fibre_stats[name][1],
             A.SPHERE_OVERLAP_MM: float(penetration[k]),
             A.TISSUE_SHARE_PCT: float(V.field(blocks[name], A.TISSUE_SHARE_PCT)),
-            **{c: _count_or_depth(c, table[c][r]) for c in IN_BONE_COLUMNS},
+            **{c: _count_or_depth(c, table[c][r]) for c in SURFACE_COLUMNS},
             **{key: (int if key in (A.FREE_IN_BONE, A.FREE_NEW_IN_BONE) else float)(
                 V.field(blocks[name], key)) for key in A.FREE_IN_BONE_FIELDS},
             **solve,
@@ -205,7 +205,8 @@ def _count_or_depth(column, value):
     """A table value for summary.csv: counts as int, NaN (no bones connected) as empty."""
     if not np.isfinite(value):
         return ""
-    return int(value) if column in (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_VERTICES_AFTER) \
+    return int(value) if column in (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_VERTICES_AFTER,
+                                    A.CAGE_DRIFT_VERTICES) \
         else float(value)
 
 

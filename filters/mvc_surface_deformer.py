@@ -34,6 +34,7 @@ from muscle_mss.core import mvc
 from muscle_mss.core.bone_distance import BoneFieldSet, push_out_of_bones, signed_distances
 from muscle_mss.core.bone_field_sampling import DEFAULT_SPACING, bone_distance_field
 from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
+from muscle_mss.core.cage_drift import CAGE_DRIFT_LIMIT, cage_distances, cage_drift
 from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
@@ -90,7 +91,8 @@ class MuscleBinding:
     VTK cell array shared by every time point's fibres (None when the model has none);
     ``rest_lengths`` (F,) mm; ``triangles`` (t, 3) int64: the surface's; ``fibres``: the fibre
     polylines at rest with what does not change over time (cells, fibre_id, fibre_index,
-    muscle_name), which each time point copies shallowly and moves.
+    muscle_name), which each time point copies shallowly and moves; ``cage_distance`` (v,) mm:
+    each rest vertex's distance to the rest cage (:mod:`muscle_mss.core.cage_drift`).
     """
 
     surface: object
@@ -106,6 +108,7 @@ class MuscleBinding:
     rest_lengths: np.ndarray
     triangles: np.ndarray
     fibres: object
+    cage_distance: np.ndarray
 
 
 class MVCSurfaceDeformer(MuscleFilter):
@@ -130,7 +133,11 @@ class MVCSurfaceDeformer(MuscleFilter):
             "field per bone, built once), and each surface reports them: point data "
             "new_in_bone_depth, field data new_in_bone_vertices and new_in_bone_depth_mm "
             "(before the push), new_in_bone_vertices_after_push and "
-            "new_in_bone_depth_after_push_mm.")
+            "new_in_bone_depth_after_push_mm. Every surface also reports how far each vertex "
+            "left its cage (point data cage_drift, mm: its distance to the cage through the "
+            "boundary particles now minus at rest; field data cage_drift_mm, the largest, and "
+            f"cage_drift_vertices, how many drifted more than {CAGE_DRIFT_LIMIT:g} mm: there "
+            "the surface does not follow the particles around it).")
     INPUTS = (
         Port("SolvedModel", "vtkMultiBlockDataSet",
              "the MSS Collision Solver's model: one block per muscle, points = current "
@@ -284,6 +291,8 @@ class MVCSurfaceDeformer(MuscleFilter):
             fields, transforms, outside, push = bones
             deformed, reports = _keep_out_of_bones(
                 deformed, fields, transforms, np.concatenate([outside[n] for n in names]), push)
+        for name, (current, surface_points), report in zip(names, points, reports):
+            report.update(_drift_report(bindings[name], current, surface_points))
         surfaces, fibres = [], []
         for name, (current, _), surface_points, report in zip(names, points, deformed, reports):
             surface, polylines = _muscle_outputs(name, bindings[name], current, surface_points,
@@ -342,7 +351,7 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
     V.set_field(fibres, A.MUSCLE_NAME, name)
     return MuscleBinding(surface, rest_points, rest_positions, cage, rest_cage, weights, order,
                          offsets, fibre_ids, grid, rest_lengths, np.ascontiguousarray(triangles),
-                         fibres)
+                         fibres, cage_distances(rest_cage, cage.triangles, rest_points))
 
 
 def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
@@ -424,6 +433,15 @@ def _deformed_points(name, block, binding: MuscleBinding):
         binding.weights, current[binding.cage.vertices] - binding.rest_cage)
 
 
+def _drift_report(binding: MuscleBinding, current, deformed) -> dict:
+    """What one muscle's surface reports of its vertices' cage drift (before any push out of
+    the bones): per vertex and the largest (mm), and how many exceed the limit."""
+    drift = cage_drift(current[binding.cage.vertices], binding.cage.triangles, deformed,
+                       binding.cage_distance)
+    return {A.CAGE_DRIFT: drift, A.CAGE_DRIFT_MM: float(max(drift.max(initial=0.0), 0.0)),
+            A.CAGE_DRIFT_VERTICES: int((drift > CAGE_DRIFT_LIMIT).sum())}
+
+
 def _muscle_outputs(name, binding: MuscleBinding, current, deformed, report):
     """The deformed surface (``deformed`` (v, 3) mm, with normals, displacement and the
     ``report``'s arrays and fields) and the fibre polylines through ``current`` (n, 3) mm."""
@@ -431,7 +449,7 @@ def _muscle_outputs(name, binding: MuscleBinding, current, deformed, report):
     V.set_normals(surface, point_normals(deformed, binding.triangles))
     V.set_point_array(surface, A.DISPLACEMENT, deformed - binding.rest_points)
     for key, value in report.items():
-        if key == A.NEW_IN_BONE_DEPTH:
+        if key in (A.NEW_IN_BONE_DEPTH, A.CAGE_DRIFT):
             V.set_point_array(surface, key, value)
         else:
             V.set_field(surface, key, value)

@@ -22,6 +22,8 @@ MEAN_ROW = "mean"
 IN_BONE_COLUMNS = (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
                    A.NEW_IN_BONE_DEPTH_AFTER_MM)
 """Columns copied from the deformed surfaces' field data (MVC Surface Deformer with bones)."""
+SURFACE_COLUMNS = IN_BONE_COLUMNS + (A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM)
+"""Every column copied from the deformed surfaces' field data (NaN where a surface has none)."""
 
 
 class VolumeErrorProbe(MuscleFilter):
@@ -49,7 +51,8 @@ class VolumeErrorProbe(MuscleFilter):
         Port("VolumeTable", "vtkTable",
              "columns muscle, rest_volume, volume (mm^3), volume_error_pct, "
              "new_in_bone_vertices, new_in_bone_depth_mm, new_in_bone_vertices_after_push, "
-             "new_in_bone_depth_after_push_mm; one row per muscle, then a row 'mean' of the "
+             "new_in_bone_depth_after_push_mm, cage_drift_vertices, cage_drift_mm; one row "
+             "per muscle, then a row 'mean' of the "
              "means of each column"),
     )
     PROPERTIES = ()
@@ -85,7 +88,7 @@ class VolumeErrorProbe(MuscleFilter):
             raise MuscleMSSError("DeformedSurfaces: has no muscle blocks; connect the MVC "
                                  "Surface Deformer's DeformedSurfaces output")
         names, rest_volumes, volumes, errors, surfaces = [], [], [], [], []
-        in_bone = {key: [] for key in IN_BONE_COLUMNS}
+        in_bone = {key: [] for key in SURFACE_COLUMNS}
         for i, (name, block) in enumerate(deformed_blocks):
             if name not in rest_blocks:
                 raise MuscleMSSError(f"RestSurfaces: has no block '{name}'; every deformed "

@@ -108,6 +108,8 @@ def test_at_rest_nothing_moves_and_strain_is_zero():
         assert V.field(out, A.MUSCLE_NAME) == name
         np.testing.assert_allclose(V.cell_array(out_fibres[name], A.FIBRE_STRAIN), 0.0,
                                    atol=1e-12)
+        np.testing.assert_allclose(V.point_array(out, A.CAGE_DRIFT), 0.0, atol=1e-9)
+        assert V.field(out, A.CAGE_DRIFT_VERTICES) == 0
     np.testing.assert_allclose(V.cell_array(out_fibres["vastus"], A.FIBRE_LENGTH), 30.0)
 
 
@@ -161,10 +163,44 @@ def test_affine_motion_moves_the_surfaces_by_the_same_map():
         np.testing.assert_allclose(V.points_of(out), expected, rtol=0, atol=atol)
         np.testing.assert_allclose(V.point_array(out, A.DISPLACEMENT), expected - rest, rtol=0,
                                    atol=atol)
+        # the distance to the cage scales by the map's stretch, between its smallest and
+        # largest singular value
+        stretch = np.abs(np.linalg.svd(matrix, compute_uv=False) - 1.0).max()
+        rest_distance = f.bindings(surfaces, model)[name].cage_distance
+        drift = V.point_array(out, A.CAGE_DRIFT)
+        assert (np.abs(drift) <= stretch * rest_distance + 1e-5).all()
+        assert np.abs(drift).max() > 0.1
+        assert V.field(out, A.CAGE_DRIFT_VERTICES) == 0
     p = probe(f.GetOutputDataObject(0), surfaces)
     for name, out in V.blocks(p.GetOutputDataObject(0)):
         ratio = V.field(out, A.VOLUME) / V.field(out, A.REST_VOLUME)
         assert ratio == pytest.approx(np.linalg.det(matrix), rel=1e-6)
+
+
+def test_a_vertex_flung_off_its_cage_is_reported_per_vertex_surface_and_table(monkeypatch):
+    """The safety net after the weights: a surface vertex that the deformation carries 40 mm
+    away from the particles around it (as a weight of both signs much larger than one can, next
+    to a tight fold of the cage) shows in the point data cage_drift, the surface's
+    cage_drift_vertices / cage_drift_mm and the probe's table; the others stay near 0."""
+    model, surfaces = scene()
+    deform_cage = D.mvc_deform
+
+    def flinging(weights, displacement):
+        out = deform_cage(weights, displacement)
+        out[7] += [0.0, 0.0, 40.0] if len(weights) == 300 else 0.0
+        return out
+
+    monkeypatch.setattr(D, "mvc_deform", flinging)
+    f = deform(moved(model, lambda p: p + [1.0, 2.0, 3.0]), surfaces, model)
+    for name, out in V.blocks(f.GetOutputDataObject(0)):
+        drift = V.point_array(out, A.CAGE_DRIFT)
+        assert 30.0 < drift[7] <= 40.0 + 1e-6
+        assert np.abs(np.delete(drift, 7)).max() < 1e-6
+        assert V.field(out, A.CAGE_DRIFT_VERTICES) == 1
+        assert V.field(out, A.CAGE_DRIFT_MM) == pytest.approx(drift[7])
+    table = V.table_columns(probe(f.GetOutputDataObject(0), surfaces).GetOutputDataObject(1))
+    assert list(table[A.CAGE_DRIFT_VERTICES][:2]) == [1, 1]
+    assert table[A.CAGE_DRIFT_MM][0] > 30.0
 
 
 def test_the_rest_pose_gives_the_rest_surfaces_exactly():
@@ -292,7 +328,8 @@ def test_volumes_agree_with_vtk_mass_properties_and_the_table():
     table = V.table_columns(p.GetOutputDataObject(1))
     assert list(table) == [A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
                            A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM,
-                           A.NEW_IN_BONE_VERTICES_AFTER, A.NEW_IN_BONE_DEPTH_AFTER_MM]
+                           A.NEW_IN_BONE_VERTICES_AFTER, A.NEW_IN_BONE_DEPTH_AFTER_MM,
+                           A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM]
     assert table[A.MUSCLE] == ["vastus", "gracilis", "mean"]
     rest = dict(V.blocks(surfaces))
     for row, (name, out) in enumerate(V.blocks(p.GetOutputDataObject(0))):
