@@ -323,9 +323,9 @@ class PreparedSurface:
     """A closed triangle surface ready for exact signed distances: ``mesh``, its
     :class:`TriangleMesh` (pseudo-normals), and ``tree``, its :class:`TriangleTree`."""
 
-    def __init__(self, points, triangles, where, checked=True):
+    def __init__(self, points, triangles, where):
         points, triangles = checked_surface(points, triangles, where)
-        problems = surface_problems(points, triangles) if checked else None
+        problems = surface_problems(points, triangles)
         if problems:
             raise MuscleMSSError(f"{where} {problems[0]}; a signed distance needs a closed, "
                                  "outward-oriented surface")
@@ -371,17 +371,21 @@ def exact_signed_distance(points, triangles, queries, where="surface") -> np.nda
     return out
 
 
-def unsigned_distance(points, triangles, queries) -> np.ndarray:
+def unsigned_distance(points, triangles, queries, where="surface") -> np.ndarray:
     """(q,) mm: the distance of ``queries`` (q, 3) mm to the nearest triangle of ``points``
     (n, 3) mm, ``triangles`` (m, 3), a surface that need not be closed or oriented (a cage
-    carried by the particles); prepared for this call only, not kept in
-    :data:`PREPARED_SURFACES`."""
+    carried by the particles): no pseudo-normals (without them every distance comes out
+    positive), the hierarchy built for this call only."""
     queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
-    surface = PreparedSurface(points, triangles, "surface", checked=False)
+    points, triangles = checked_surface(points, triangles, where)
+    m = len(triangles)
+    mesh = TriangleMesh(points, triangles, np.zeros((m, 3)), np.zeros((m, 3, 3)),
+                        np.zeros((len(points), 3)))
     out = np.empty(len(queries))
     if len(queries):
-        exact_at_queries(queries, query_chunks(len(queries)), surface.mesh, surface.tree, out)
-    return np.abs(out)
+        exact_at_queries(queries, query_chunks(len(queries)), mesh,
+                         _hierarchy(points, triangles), out)
+    return out
 
 
 def inside_surface(points, triangles, queries, sampled, error_bound, where="surface"):
