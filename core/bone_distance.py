@@ -114,11 +114,20 @@ class BoneFieldSet:
     index_start: np.ndarray
     brick_index: np.ndarray
     bricks: np.ndarray
+    surfaces: tuple = ()
+    """Each bone's closed triangle surface in its field's frame, prepared for exact distances
+    (:class:`.triangle_distance.PreparedSurface`) where the fields are not exact enough
+    (:mod:`.exact_bone_distance`); empty when the caller did not give them."""
 
     @classmethod
-    def pack(cls, fields, names=None) -> "BoneFieldSet":
-        """Pack :class:`BoneDistanceField` objects (in bone order) into one set."""
+    def pack(cls, fields, names=None, surfaces=()) -> "BoneFieldSet":
+        """Pack :class:`BoneDistanceField` objects (in bone order) into one set, with the
+        surfaces they were sampled from (optional, in the same order)."""
         fields = list(fields)
+        surfaces = tuple(surfaces)
+        if surfaces and len(surfaces) != len(fields):
+            raise MuscleMSSError(f"bone fields: {len(fields)} fields but {len(surfaces)} "
+                                 "surfaces")
         names = tuple(names) if names is not None else tuple(str(i) for i in range(len(fields)))
         coarse_start = np.cumsum([0] + [len(f.coarse) for f in fields])[:-1].astype(np.int64)
         index_start = np.cumsum([0] + [len(f.brick_index) for f in fields])[:-1].astype(np.int64)
@@ -136,7 +145,13 @@ class BoneFieldSet:
             index_start=index_start,
             brick_index=np.concatenate(indices + [np.zeros(0, np.int32)]),
             bricks=np.concatenate([f.bricks.reshape(-1, nodes) for f in fields]
-                                  + [np.zeros((0, nodes), np.float32)]))
+                                  + [np.zeros((0, nodes), np.float32)]),
+            surfaces=surfaces)
+
+    def error_bounds(self) -> np.ndarray:
+        """(b,) mm: :attr:`BoneDistanceField.error_bound` of each bone's field."""
+        rounding = 1e-6 * float(np.abs(self.coarse).max(initial=0.0))
+        return math.sqrt(3.0) * COARSE * self.spacing + rounding
 
     def __len__(self):
         return len(self.names)

@@ -64,7 +64,8 @@ def bone_distance_field(points, triangles, spacing=DEFAULT_SPACING, band=DEFAULT
             for k in range(3)]
     corners = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     coarse = np.empty(len(corners))
-    exact_at_queries(corners, query_chunks(len(corners)), surface.mesh, surface.tree, coarse)
+    exact_at_queries(corners, query_chunks(len(corners)), surface.mesh, surface.tree, coarse,
+                     np.empty((len(corners), 3)))
     # Every point of a brick is within half a coarse cell's diagonal of one of the brick's
     # coarse nodes, and distance is 1-Lipschitz: a brick whose nodes are all farther than
     # band + that from the surface holds no point within band of it.

@@ -48,16 +48,23 @@ clearance of the bones then, mm; ``slack`` mm); the contact state (``disp`` (3, 
 them ``ptr`` (M + 1,)."""
 
 
-def solid_points(prep: PreparedModel) -> np.ndarray:
-    """(k,) int64, solver order: the particles the bones as solids keep out — every free
-    particle not inside a bone at rest (``in_bone_at_rest``; a particle embedded in its
-    attachment bone belongs there), with or without a sphere; when the model does not say
-    which particles are inside a bone at rest, the free particles with a sphere."""
-    if prep.in_bone_at_rest is None:
-        keep = prep.boundary & (prep.radius > 0.0)
+def kept_out_of_solids(fixed, boundary, radius, in_bone_at_rest) -> np.ndarray:
+    """(n,) bool: the particles the bones as solids keep out — every free particle not inside
+    a bone at rest (``in_bone_at_rest`` (n,) bool; a particle embedded in its attachment bone
+    belongs there), with or without a sphere; when the model does not say which particles are
+    inside a bone at rest (None), the free particles with a sphere (``boundary`` and ``radius``
+    > 0). The arrays (n,) in any one order."""
+    if in_bone_at_rest is None:
+        keep = np.asarray(boundary, dtype=bool) & (np.asarray(radius) > 0.0)
     else:
-        keep = ~prep.in_bone_at_rest
-    return np.flatnonzero(keep & ~prep.fixed).astype(np.int64)
+        keep = ~np.asarray(in_bone_at_rest, dtype=bool)
+    return keep & ~np.asarray(fixed, dtype=bool)
+
+
+def solid_points(prep: PreparedModel) -> np.ndarray:
+    """(k,) int64, solver order: the particles :func:`kept_out_of_solids`."""
+    return np.flatnonzero(kept_out_of_solids(prep.fixed, prep.boundary, prep.radius,
+                                             prep.in_bone_at_rest)).astype(np.int64)
 
 
 def solid_grid(bone_solids: BoneSolids | None) -> FieldGrid:

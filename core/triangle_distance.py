@@ -12,7 +12,8 @@ vertex), which is exact for closed, manifold, outward-oriented surfaces.
 A surface is prepared once (:func:`prepared_surface`: its pseudo-normals and hierarchy, kept
 for the last :data:`SURFACES_KEPT` surfaces by bitwise digest) and then queried by the kernels
 :func:`exact_at_queries` (any points) and :func:`exact_at_bricks` (the nodes of the bones'
-fine bricks), or through the checked :func:`exact_signed_distance` and :func:`inside_surface`.
+fine bricks), or through the checked :func:`exact_signed_distance`, :func:`exact_closest_points`
+and :func:`inside_surface`.
 """
 from __future__ import annotations
 
@@ -123,10 +124,11 @@ def _feature_normal(mesh, triangle, feature):
 
 @njit(cache=True)
 def _nearest_signed(px, py, pz, hint, stack, mesh, tree):
-    """Exact signed distance (mm, negative inside) of p to the surface ``mesh`` and its nearest
-    triangle, found in ``tree``, nearer child first, boxes farther than the best triangle so
-    far skipped. A ``hint`` triangle (>= 0; a neighbouring point's nearest) starts the search
-    with a tight bound. ``stack`` (_STACK,) int64 is scratch."""
+    """Exact signed distance (mm, negative inside) of p to the surface ``mesh``, its nearest
+    triangle and the closest point on it (3 floats, mm): ``(distance, triangle, x, y, z)``,
+    found in ``tree``, nearer child first, boxes farther than the best triangle so far
+    skipped. A ``hint`` triangle (>= 0; a neighbouring point's nearest) starts the search with a
+    tight bound. ``stack`` (_STACK,) int64 is scratch."""
     low, high, child = tree.low, tree.high, tree.child
     best = np.inf
     bx = by = bz = 0.0
@@ -162,23 +164,23 @@ def _nearest_signed(px, py, pz, hint, stack, mesh, tree):
     nx, ny, nz = _feature_normal(mesh, bt, bf)
     distance = math.sqrt(best)
     if (px - bx) * nx + (py - by) * ny + (pz - bz) * nz < 0.0:
-        return -distance, bt
-    return distance, bt
+        return -distance, bt, bx, by, bz
+    return distance, bt, bx, by, bz
 
 
 @njit(parallel=True, cache=True)
-def exact_at_queries(queries, chunks, mesh, tree, out):
-    """Exact signed distances (mm) of ``queries`` (q, 3) mm to ``mesh`` into ``out`` (q,), in
-    ``chunks`` runs of consecutive queries (:func:`query_chunks`); within a run each query
-    starts from the previous one's nearest triangle (fast for grid-ordered queries, exact for
-    any order)."""
+def exact_at_queries(queries, chunks, mesh, tree, out, closest):
+    """Exact signed distances (mm) of ``queries`` (q, 3) mm to ``mesh`` into ``out`` (q,) and
+    the closest surface points into ``closest`` (q, 3) mm, in ``chunks`` runs of consecutive
+    queries (:func:`query_chunks`); within a run each query starts from the previous one's
+    nearest triangle (fast for grid-ordered queries, exact for any order)."""
     n = queries.shape[0]
     for c in prange(chunks):
         stack = np.empty(_STACK, dtype=np.int64)
         hint = -1
         for q in range(c * n // chunks, (c + 1) * n // chunks):
-            out[q], hint = _nearest_signed(queries[q, 0], queries[q, 1], queries[q, 2], hint,
-                                           stack, mesh, tree)
+            out[q], hint, closest[q, 0], closest[q, 1], closest[q, 2] = _nearest_signed(
+                queries[q, 0], queries[q, 1], queries[q, 2], hint, stack, mesh, tree)
 
 
 @njit(parallel=True, cache=True)
@@ -200,7 +202,8 @@ def exact_at_bricks(bricks, origin, spacing, mesh, tree, out):
             hint = row
             for k in range(n):
                 z = origin[2] + (bricks[b, 2] * brick + k) * spacing
-                out[b, a, j, k], hint = _nearest_signed(x, y, z, hint, stack, mesh, tree)
+                out[b, a, j, k], hint, _, _, _ = _nearest_signed(x, y, z, hint, stack, mesh,
+                                                                  tree)
                 if k == 0:
                     row = hint
 
@@ -360,15 +363,27 @@ def exact_signed_distance(points, triangles, queries, where="surface") -> np.nda
     outward-oriented triangle surface ``points`` (n, 3) mm, ``triangles`` (m, 3): the nearest
     triangle through a bounding volume hierarchy, the sign by pseudo-normals. Returns (q,)
     float64."""
-    queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+    return exact_closest_points(points, triangles, queries, where)[0]
+
+
+def exact_closest_points(points, triangles, queries, where="surface"):
+    """:func:`exact_signed_distance` of ``queries`` (q, 3) mm and the closest point of the
+    surface to each: ``(distance (q,) mm, closest (q, 3) mm)``."""
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    return closest_points(prepared_surface(points, triangles, where), queries, where)
+
+
+def closest_points(surface: PreparedSurface, queries, where="surface"):
+    """:func:`exact_closest_points` on a :class:`PreparedSurface`: ``(distance (q,) mm,
+    closest (q, 3) mm)`` of ``queries`` (q, 3) mm."""
+    queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
     if not np.isfinite(queries).all():
         raise MuscleMSSError(f"{where}: the query points must have finite coordinates")
-    surface = prepared_surface(points, triangles, where)
-    out = np.empty(len(queries))
+    out, closest = np.empty(len(queries)), np.empty((len(queries), 3))
     if len(queries):
-        exact_at_queries(queries, query_chunks(len(queries)), surface.mesh, surface.tree, out)
-    return out
+        exact_at_queries(queries, query_chunks(len(queries)), surface.mesh, surface.tree, out,
+                         closest)
+    return out, closest
 
 
 def unsigned_distance(points, triangles, queries, where="surface") -> np.ndarray:
@@ -384,7 +399,7 @@ def unsigned_distance(points, triangles, queries, where="surface") -> np.ndarray
     out = np.empty(len(queries))
     if len(queries):
         exact_at_queries(queries, query_chunks(len(queries)), mesh,
-                         _hierarchy(points, triangles), out)
+                         _hierarchy(points, triangles), out, np.empty((len(queries), 3)))
     return out
 
 

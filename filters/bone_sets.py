@@ -26,7 +26,9 @@ import numpy as np
 
 from muscle_mss.core.bone_distance import BoneFieldSet, signed_distances
 from muscle_mss.core.bone_field_sampling import bone_distance_field
-from muscle_mss.core.triangle_distance import inside_surface, surface_digest
+from muscle_mss.core.exact_bone_distance import exact_signed_distances
+from muscle_mss.core.triangle_distance import (PreparedSurface, inside_surface,
+                                                prepared_surface, surface_digest)
 from muscle_mss.core import field_store
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
@@ -53,6 +55,7 @@ _cache = OrderedDict()      # key -> list of (points (n, 3), (centres (k, 3), ra
 #: unmodified blocks.
 field_counts = {"sampled": 0, "loaded": 0, "reused": 0, "moved": 0, "remembered": 0}
 _field_cache = OrderedDict()    # key -> list of (points (n, 3), BoneDistanceField)
+_field_surfaces = OrderedDict()  # id(field) -> (field, its surface (points, triangles))
 _packed = {}                    # the last packed BoneFieldSet and the fields it holds
 _solids = OrderedDict()         # the blocks' VTK identities -> bone_solids' result
 _digests = OrderedDict()        # a cell array's VTK identity -> its triangles' digest
@@ -63,6 +66,7 @@ def clear_bone_cache():
     """Forget every cached bone and zero :data:`cache_counts` and :data:`field_counts`."""
     _cache.clear()
     _field_cache.clear()
+    _field_surfaces.clear()
     _packed.clear()
     _solids.clear()
     _digests.clear()
@@ -172,7 +176,16 @@ def cached_bone_field(points, triangles, where: str = "bone", digest=None):
         field_counts["sampled"] += 1
         field_store.save(stored, field)
     _store(_field_cache, key, points, field)
+    _field_surfaces[id(field)] = (field, prepared_surface(points, triangles, where))
+    while len(_field_surfaces) > 4 * CACHE_ENTRIES:     # a key of the cache may hold several
+        _field_surfaces.popitem(last=False)
     return field, np.eye(3, 4)
+
+
+def field_surface(field) -> PreparedSurface:
+    """The bone surface a field of :func:`cached_bone_field` was sampled from, in the field's
+    frame, prepared for exact distances (:mod:`muscle_mss.core.exact_bone_distance`)."""
+    return _field_surfaces[id(field)][1]
 
 
 def bone_solids(bones, where: str = "bones"):
@@ -202,7 +215,8 @@ def bone_solids(bones, where: str = "bones"):
     key = tuple(id(f) for f in fields)
     if _packed.get("key") != key:
         _packed.clear()
-        _packed.update(key=key, fields=BoneFieldSet.pack(fields, names))
+        _packed.update(key=key, fields=BoneFieldSet.pack(
+            fields, names, [field_surface(field) for field in fields]))
     transforms = np.array(transforms).reshape(-1, 3, 4)
     _solids[identity] = (_packed["fields"], transforms.copy())
     while len(_solids) > SOLIDS_ENTRIES:
@@ -227,11 +241,12 @@ def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
 
 def bone_depths(points, bones, where: str = "bones") -> np.ndarray:
     """How deep (mm, (n,)) each of ``points`` (n, 3) mm lies inside a bone of the posed
-    multiblock ``bones`` (its cached distance field, :func:`bone_solids`): minus the smallest
+    multiblock ``bones`` (:func:`bone_solids`, exact near the surfaces:
+    :func:`~muscle_mss.core.exact_bone_distance.exact_signed_distances`): minus the smallest
     signed distance, negative outside every bone."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     fields, transforms = bone_solids(bones, where)
-    return -signed_distances(fields, points, transforms)[0].min(axis=1, initial=np.inf)
+    return -exact_signed_distances(fields, points, transforms).min(axis=1, initial=np.inf)
 
 
 def particles_in_bones(depth, free, in_bone_at_rest) -> tuple:

@@ -13,7 +13,7 @@ Outputs: ``SolvedModel`` — every input block and array kept, points = solved p
 ``velocity`` (mm/s), ``displacement`` (solved - posed, mm) and ``collided`` (uint8, in the last
 iteration or the final collision passes), and per block (muscle) the field data
 ``free_particles_in_bone`` / ``free_particle_bone_depth_mm`` (free particles with their centre
-inside a posed bone, by the bones' distance fields, and the deepest, mm) and
+inside a posed bone, by the bones' exact distance near their surfaces, and the deepest, mm) and
 ``free_particles_new_in_bone`` / ``free_particle_new_in_bone_depth_mm`` (those of them not inside
 a bone at rest, ``in_bone_at_rest``: the goal is 0); ``Convergence`` — a table with one row per
 iteration: ``iteration``, ``mean_displacement_<muscle>`` per muscle (mm; the paper's figures 5
@@ -43,7 +43,9 @@ posed particles (faster along a motion, but the answer then depends on the order
 methods, the iterations and the final collision passes): as solids by default
 (:func:`solid_bones`: each bone's signed distance field, sampled once per bone shape by
 :func:`~muscle_mss.filters.bone_sets.bone_solids`; a muscle sphere is pushed out along the
-distance gradient from any depth), or as the paper's sphere sets (a sphere carried past a
+distance gradient from any depth; after the solve a free particle centre still inside a bone
+by the bones' triangles, which the fields miss next to thin bones, is put on its surface:
+:func:`_out_of_thin_bones`), or as the paper's sphere sets (a sphere carried past a
 bone's shell of spheres is pushed on through it; the Table 1 baseline). The solids are the
 default because they are also the faster (``benchmarks/results/bone_contact.md``).
 """
@@ -63,6 +65,8 @@ from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.cage import fibre_polylines
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.exact_bone_distance import push_out_exactly
+from muscle_mss.core.solid_contacts import kept_out_of_solids
 from muscle_mss.core.settings import (
     DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE, DEFAULT_BVH_MIN_PRIMITIVES,
     DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS, DEFAULT_METHOD,
@@ -92,6 +96,22 @@ def solid_bones(posed_bones) -> BoneSolids:
     spacing only because a shell of spheres needs it to be closed."""
     fields, transforms = bone_solids(posed_bones, BONES)
     return BoneSolids(fields, transforms, np.zeros(len(fields)))
+
+
+def _out_of_thin_bones(model: MSSModel, solids: BoneSolids, positions, collided):
+    """``(positions (n, 3) mm, collided (n,) bool)`` of a solve with the centre of every
+    particle the solids keep out (:func:`~muscle_mss.core.solid_contacts.kept_out_of_solids`)
+    that is exactly inside a bone put on that bone's surface
+    (:func:`~muscle_mss.core.exact_bone_distance.push_out_exactly`): the solvers' contacts
+    read the sampled fields, which are up to a few tenths of a millimetre off next to thin
+    forearm bones; the moved particles count as collided."""
+    active = kept_out_of_solids(model.fixed, model.boundary, model.radius,
+                                model.in_bone_at_rest)
+    push = push_out_exactly(solids.fields, positions, solids.transforms, active)
+    moved = (push != 0.0).any(axis=1)
+    if not moved.any():
+        return positions, collided
+    return positions + push, collided | moved
 
 
 def _muscle_block(name, block, known: dict | None = None):
@@ -348,14 +368,17 @@ class MSSCollisionSolver(MuscleFilter):
             solids = solid_bones(inputs[1])
         prepared = self._prepare(model, identities)
         result = self._solve(model, bones, solids, prepared)
+        positions, collided = result.positions, result.collided
+        if solids is not None:
+            positions, collided = _out_of_thin_bones(model, solids, positions, collided)
         items = []
-        depth = bone_depths(result.positions, inputs[1], BONES)
+        depth = bone_depths(positions, inputs[1], BONES)
         for m, ((name, block), part) in enumerate(zip(blocks, parts)):
             lo, hi = model.offsets[m], model.offsets[m + 1]
-            out = V.with_points(block, result.positions[lo:hi])
+            out = V.with_points(block, positions[lo:hi])
             V.set_point_array(out, A.VELOCITY, result.velocity[lo:hi])
-            V.set_point_array(out, A.DISPLACEMENT, result.positions[lo:hi] - part["points"])
-            V.set_point_array(out, A.COLLIDED, result.collided[lo:hi].astype(np.uint8))
+            V.set_point_array(out, A.DISPLACEMENT, positions[lo:hi] - part["points"])
+            V.set_point_array(out, A.COLLIDED, collided[lo:hi].astype(np.uint8))
             in_bone = (None if model.in_bone_at_rest is None
                        else model.in_bone_at_rest[lo:hi])
             for key, value in zip(A.FREE_IN_BONE_FIELDS, particles_in_bones(

@@ -17,8 +17,10 @@ bone gets a signed distance field (:mod:`muscle_mss.core.bone_distance`, sampled
 rest frame, rebuilt only when RestBones or BoneFieldSpacing change) and every deformed vertex
 that is inside a posed bone but was outside that bone at rest is pushed out onto its surface
 along the distance gradient (``KeepOutOfBones``); vertices inside a bone at rest (a muscle
-pressed against its bone) are left alone. Each bone's posed transform is fitted from its rest
-and posed vertices. Reported per muscle: the point array ``new_in_bone_depth`` and the field
+pressed against its bone) are left alone; the push ends on the bone's triangles
+(:mod:`muscle_mss.core.exact_bone_distance`: the fields are millimetres off next to thin
+forearm bones), and inside and outside are decided by the exact distance near each surface.
+Each bone's posed transform is fitted from its rest and posed vertices. Reported per muscle: the point array ``new_in_bone_depth`` and the field
 data ``new_in_bone_vertices`` / ``new_in_bone_depth_mm`` (before the push) and
 ``new_in_bone_vertices_after_push`` / ``new_in_bone_depth_after_push_mm``; a vertex counts as
 inside when deeper than :data:`INSIDE_TOLERANCE`.
@@ -31,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from muscle_mss.core import mvc
-from muscle_mss.core.bone_distance import BoneFieldSet, push_out_of_bones, signed_distances
+from muscle_mss.core.bone_distance import BoneFieldSet, push_out_of_bones
+from muscle_mss.core.exact_bone_distance import exact_signed_distances, push_out_exactly
 from muscle_mss.core.bone_field_sampling import DEFAULT_SPACING, bone_distance_field
 from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
 from muscle_mss.core.cage_drift import CAGE_DRIFT_LIMIT, cage_distances, cage_drift
@@ -40,11 +43,12 @@ from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
 from muscle_mss.core.rigid_fit import fitted_rigid_transform
 from muscle_mss.core.surface_normals import point_normals
+from muscle_mss.core.triangle_distance import prepared_surface
 
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
-from .bone_sets import INSIDE_TOLERANCE, cached_bone_field
+from .bone_sets import INSIDE_TOLERANCE, cached_bone_field, field_surface
 from .properties import Property
 
 # Share of the progress bar taken by the weights when they are (re)computed.
@@ -200,22 +204,24 @@ class MVCSurfaceDeformer(MuscleFilter):
             if not items:
                 raise MuscleMSSError("RestBones: has no blocks; connect bones.vtm")
             spacing = self.value("BoneFieldSpacing")
-            fields, rest_points, frames = [], {}, []
+            fields, rest_points, frames, surfaces = [], {}, [], []
             for i, (name, block) in enumerate(items):
                 where = f"RestBones block '{name}'"
                 rest_points[name] = V.points_of(block)
                 triangles = V.triangles_of(block, where)
                 if spacing == DEFAULT_SPACING:
                     field, frame = cached_bone_field(rest_points[name], triangles, where)
+                    surfaces.append(field_surface(field))
                 else:
                     field = bone_distance_field(rest_points[name], triangles, spacing=spacing,
                                                 where=where)
                     frame = np.eye(3, 4)
+                    surfaces.append(prepared_surface(rest_points[name], triangles, where))
                 fields.append(field)
                 frames.append(frame)
                 if self.progress((i + 1) / len(items)):
                     raise MuscleMSSError("aborted while sampling the bones' distance fields")
-            self._bones = (BoneFieldSet.pack(fields, list(rest_points)), rest_points,
+            self._bones = (BoneFieldSet.pack(fields, list(rest_points), surfaces), rest_points,
                            np.array(frames).reshape(-1, 3, 4))
             self._bone_key = key
             self.field_computations += 1
@@ -225,7 +231,7 @@ class MVCSurfaceDeformer(MuscleFilter):
         """``{muscle: (v, b) bool}``: which rest surface vertices are outside which bone."""
         key = (self._rest_key, self._bone_key)
         if key != self._outside_key:
-            self._outside = {name: signed_distances(fields, b.rest_points, frames)[0]
+            self._outside = {name: exact_signed_distances(fields, b.rest_points, frames)
                              >= -INSIDE_TOLERANCE for name, b in bindings.items()}
             self._outside_key = key
         return self._outside
@@ -377,8 +383,9 @@ def _after(outer, inner) -> np.ndarray:
 
 def new_in_bones(fields, transforms, points, outside):
     """``(inside (n,) bool, depth (n,) mm)`` of the ``points`` (n, 3): which are inside a posed
-    bone they were ``outside`` (n, b) at rest, and how deep (0 for the others)."""
-    distance, _ = signed_distances(fields, points, transforms)
+    bone they were ``outside`` (n, b) at rest, and how deep (0 for the others), by the bones'
+    exact distance near their surfaces."""
+    distance = exact_signed_distances(fields, points, transforms)
     new = (distance < -INSIDE_TOLERANCE) & outside
     return new.any(axis=1), np.where(new, -distance, 0.0).max(axis=1, initial=0.0)
 
@@ -401,6 +408,8 @@ def _keep_out_of_bones(deformed: list, fields, transforms, outside, push):
         # only the vertices newly inside move (a vertex already out gets exactly 0)
         points[inside] += push_out_of_bones(fields, points[inside], None, transforms,
                                             active=outside[inside], tolerance=INSIDE_TOLERANCE)
+        # the fields' push leaves a vertex up to their error inside a thin bone: finish exactly
+        points[inside] += push_out_exactly(fields, points[inside], transforms, outside[inside])
         still, depth_after = new_in_bones(fields, transforms, points[inside], outside[inside])
         count_after = np.bincount(muscle[inside][still], minlength=len(sizes))
         deepest_after = np.zeros(len(sizes))

@@ -1,4 +1,5 @@
-"""Signed distance fields of bones and pushing points out of them (issues 12 and 14)."""
+"""Signed distance fields of bones and pushing points out of them (issues 12 and 14), and the
+exact distances that correct them next to thin bones (issue 30)."""
 import numpy as np
 import pytest
 
@@ -6,7 +7,10 @@ from muscle_mss.core.bone_distance import (BRICK, COARSE, BoneFieldSet, push_out
                                            signed_distances)
 from muscle_mss.core.bone_field_sampling import bone_distance_field, bone_field_set
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.triangle_distance import exact_signed_distance, inside_surface
+from muscle_mss.core.exact_bone_distance import (EXACT_CLEARANCE, exact_signed_distances,
+                                                 push_out_exactly)
+from muscle_mss.core.triangle_distance import (exact_signed_distance, inside_surface,
+                                               prepared_surface)
 from reference_distance import reference_push_out, reference_signed_distance
 
 
@@ -232,3 +236,36 @@ def test_bad_surfaces_and_arguments_are_refused_with_the_bone_named():
         signed_distances(field, np.zeros((1, 3)), np.zeros((2, 3, 4)))
     with pytest.raises(MuscleMSSError, match="active"):
         push_out_of_bones(field, np.zeros((2, 3)), active=[True])
+
+
+def test_exact_distances_and_push_correct_the_field_next_to_a_thin_bone():
+    # a plate 1.2 mm thick, thinner than the field's 1 mm cells can resolve: the looked-up
+    # distances inside it are off by a good part of a millimetre
+    plate = box_mesh([-10.0, -10.0, -0.6], [10.0, 10.0, 0.6])
+    transform = rigid(30.0, [1, 2, 0], [4.0, -1.0, 2.0])
+    fields = bone_field_set([plate])
+    with_surfaces = BoneFieldSet.pack([bone_distance_field(*plate)],
+                                      surfaces=[prepared_surface(*plate, "plate")])
+    rest = np.array([[0.3, 0.2, 0.05], [-2.0, 4.0, -0.5], [1.0, 1.0, 0.55], [0.0, 0.0, 3.0],
+                     [0.0, 0.0, 30.0]])
+    posed = rest @ transform[:, :3].T + transform[:, 3]
+    exact = reference_signed_distance(*plate, rest)
+    sampled = signed_distances(fields, posed, transform[None])[0][:, 0]
+    assert np.abs(sampled[:3] - exact[:3]).max() > 0.1        # the field is not enough here
+    measured = exact_signed_distances(with_surfaces, posed, transform[None])[:, 0]
+    np.testing.assert_allclose(measured[:4], exact[:4], atol=1e-9)
+    assert measured[4] == sampled[4]                           # far out: the field's value
+    np.testing.assert_array_equal(exact_signed_distances(fields, posed, transform[None])[:, 0],
+                                  sampled)                     # no surfaces: the fields only
+
+    shift = push_out_exactly(with_surfaces, posed, transform[None])
+    back = (posed + shift - transform[:, 3]) @ transform[:, :3]
+    after = reference_signed_distance(*plate, back)
+    np.testing.assert_allclose(after[:3], EXACT_CLEARANCE, atol=1e-9)   # on the near face
+    np.testing.assert_allclose(np.abs(back[:3, 2]), 0.6 + EXACT_CLEARANCE, atol=1e-9)
+    np.testing.assert_allclose(back[:3, :2], rest[:3, :2], atol=1e-9)
+    assert np.sign(back[1, 2]) == -1 and np.sign(back[2, 2]) == 1
+    assert not shift[3:].any()                                  # outside: exactly unmoved
+    held = push_out_exactly(with_surfaces, posed, transform[None],
+                            active=[[True], [False], [True], [True], [True]])
+    assert not held[1].any() and held[0].any()

@@ -250,3 +250,22 @@ def test_pvpython_shows_the_failing_filters_message_and_no_follow_on_complaints(
     assert message in proc.stderr
     for follow_on in ("has no muscle blocks", "has no blocks", "has no block '"):
         assert follow_on not in proc.stderr, proc.stderr[-3000:]
+
+
+def test_shipped_state_has_every_port_and_property_of_the_filters_as_they_are():
+    """A state saved before a filter gained an input or a property reloads without it (the
+    Fibre Resampler's Bones, which orients fibres, and the solver's ConnectiveTissue were
+    missing): regenerate it (state_files/README.md) whenever this fails."""
+    import xml.etree.ElementTree as ET
+    from muscle_mss import filters as F
+    state = ET.parse(SCRIPTS.parents[1] / "state_files" / "demo_walk.pvsm").getroot()
+    for cls in (F.FibreResampler, F.SpringBuilder, F.RigidPoseTransform, F.MSSCollisionSolver,
+                F.MVCSurfaceDeformer, F.VolumeErrorProbe):
+        proxy = state.find(f".//Proxy[@group='filters'][@type='{cls.__name__}']")
+        assert proxy is not None, cls.__name__
+        saved = {p.get("name"): p for p in proxy.findall("Property")}
+        for port in cls.INPUTS:
+            assert port.name in saved, (cls.__name__, port.name)
+            assert saved[port.name].find("Proxy") is not None, (cls.__name__, port.name)
+        for prop in cls.PROPERTIES:
+            assert prop.name in saved, (cls.__name__, prop.name)
