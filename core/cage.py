@@ -97,6 +97,13 @@ def polyline_lengths(points, order, offsets) -> np.ndarray:
     return cumulative[np.maximum(offsets[1:] - 1, offsets[:-1])] - cumulative[offsets[:-1]]
 
 
+def polyline_chords(points, order, offsets) -> np.ndarray:
+    """Distance (mm) from the first to the last point of each polyline (a fibre's end-to-end
+    length, its chord); (F,) float64, the arguments as for :func:`polyline_lengths`."""
+    walked = np.asarray(points, dtype=np.float64)[order]
+    return np.linalg.norm(walked[offsets[1:] - 1] - walked[offsets[:-1]], axis=1)
+
+
 def muscle_cage(rest_positions, boundary, fibre_id, fibre_index, fibre_grid=None,
                 where: str = "model") -> Cage:
     """The cage of one muscle (see the module docstring for the two rules).

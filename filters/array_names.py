@@ -30,6 +30,9 @@ DAMPING = "damping"                  # float64, g/s (along the spring)
 # Cell data of the deformed fibre polylines (MVC Surface Deformer).
 FIBRE_LENGTH = "fibre_length"        # float64, mm
 FIBRE_STRAIN = "fibre_strain"        # float64, length / rest length - 1
+FIBRE_END_STRAIN = "fibre_end_to_end_strain"  # float64, chord / rest chord - 1 (the chord: the
+#                                               distance from the fibre's first point to its last)
+FIBRE_ARC_CHORD = "fibre_arc_chord"  # float64, length / chord: 1 straight, more when it bends
 
 # Point data of the deformed surfaces (MVC Surface Deformer with bones).
 NEW_IN_BONE_DEPTH = "new_in_bone_depth"  # float64, mm a vertex outside a bone at rest was inside
@@ -86,5 +89,7 @@ RESIDUAL = "residual"                # column of the solver's table: mm, largest
 TIME = "time"                        # float64, s
 MEAN_FIBRE_STRAIN = "mean_fibre_strain"
 MAX_FIBRE_STRAIN = "max_fibre_strain"
+MEAN_END_TO_END_STRAIN = "mean_end_to_end_strain"  # mean FIBRE_END_STRAIN of the muscle
+MAX_ARC_CHORD = "max_arc_chord"      # largest FIBRE_ARC_CHORD of the muscle
 SPHERE_OVERLAP_MM = "sphere_overlap_mm"  # mm, deepest overlap of the muscle's spheres
 ITERATIONS = "iterations"            # int, iterations of the time point's solve

@@ -128,8 +128,9 @@ class ProgressBar:
 
 
 def summary_table(rows) -> str:
-    """Per muscle over the whole motion: mean and max volume error, max fibre strain, max
-    sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
+    """Per muscle over the whole motion: mean and max volume error, max fibre strain, how its
+    fibres follow its end-to-end length (:func:`follow_slope`) and their largest arc / chord
+    (above 1 a fibre bends or folds), max sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
     Deformer's push out) and before the push, the largest drift of a surface vertex off its
     cage (mm), the largest share of the connective tissue in the muscle's load (%), mean
     iterations and seconds per time point; then the mean over muscles, and a line for each
@@ -138,7 +139,7 @@ def summary_table(rows) -> str:
     for r in rows:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
-              f"{'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'drift mm':>8s} "
+              f"{'follows':>7s} {'arc/chord':>9s} {'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'drift mm':>8s} "
               f"{'tissue %':>8s} {'iters':>6s} {'s/time':>7s}")
     lines = [header, "-" * len(header)]
     means = []
@@ -147,6 +148,7 @@ def summary_table(rows) -> str:
         means.append(sum(err) / len(err))
         lines.append(f"{name:28s} {means[-1]:14.2f} {max(err):7.2f} "
                      f"{max(float(r[A.MAX_FIBRE_STRAIN]) for r in rs):10.3f} "
+                     f"{_or_dash(follow_slope(rs), 7, 2)} {_deepest(rs, A.MAX_ARC_CHORD, 9, 2)} "
                      f"{max(float(r[A.SPHERE_OVERLAP_MM]) for r in rs):10.3f} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM)} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_MM)} "
@@ -170,11 +172,37 @@ def summary_table(rows) -> str:
     return "\n".join(lines)
 
 
+FOLLOW_SPAN = 0.05
+"""The least spread (max - min) of a muscle's mean end-to-end strain over a motion for
+:func:`follow_slope` to give a slope."""
+
+
+def follow_slope(rows) -> float:
+    """How a muscle's fibres follow its end-to-end length over the time points ``rows``: the
+    least-squares slope of ``mean_fibre_strain`` against ``mean_end_to_end_strain`` (1: the
+    fibres lengthen and shorten with the muscle; near 0: they keep their length, and a
+    shortening muscle folds). NaN when the end-to-end strain spreads less than
+    :data:`FOLLOW_SPAN` (one time point, a muscle the motion does not stretch)."""
+    pairs = [(float(r[A.MEAN_END_TO_END_STRAIN]), float(r[A.MEAN_FIBRE_STRAIN])) for r in rows
+             if r.get(A.MEAN_END_TO_END_STRAIN, "") != ""]
+    ends = [e for e, _ in pairs]
+    if not pairs or max(ends) - min(ends) < FOLLOW_SPAN:
+        return math.nan
+    mean_e = sum(ends) / len(ends)
+    mean_f = sum(f for _, f in pairs) / len(pairs)
+    return (sum((e - mean_e) * (f - mean_f) for e, f in pairs)
+            / sum((e - mean_e) ** 2 for e in ends))
+
+
+def _or_dash(value: float, width: int, digits: int) -> str:
+    return f"{value:{width}.{digits}f}" if math.isfinite(value) else f"{'-':>{width}s}"
+
+
 def _deepest(rows, column, width=10, digits=3) -> str:
     """The largest value of a column as text ``width`` wide, "-" when no row has one (no bones
     connected)."""
-    values = [float(r[column]) for r in rows if r[column] != ""]
-    return f"{max(values):{width}.{digits}f}" if values else f"{'-':>{width}s}"
+    values = [float(r[column]) for r in rows if r.get(column, "") != ""]
+    return _or_dash(max(values) if values else math.nan, width, digits)
 
 
 def timings_note(timings: dict) -> str:

@@ -27,9 +27,9 @@ Two methods (property ``Method``): ``paper relaxation`` (the default,
 :mod:`muscle_mss.core.relaxation`) runs the paper's explicit iterations; ``quasi-static``
 (:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the same model to
 ``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
-is not the default: on the demo thigh at N = 20, even with ``ConnectiveTissue`` 0.1 (203
-iterations at the walking pose), its stopping test does not fire in 1,000 iterations at the most
-flexed pose (``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why).
+is not the default: with ``ConnectiveTissue`` 0.1 it converges at every benchmarked pose of
+both demos at N = 20, but in 200-900 iterations, 2.7-14 s a pose
+(``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why).
 The quasi-static table
 adds a ``residual`` column (mm, per iteration); both tables carry field data ``method`` and
 ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap above
@@ -45,8 +45,9 @@ methods, the iterations and the final collision passes): as solids by default
 :func:`~muscle_mss.filters.bone_sets.bone_solids`; a muscle sphere is pushed out along the
 distance gradient from any depth; after the solve a free particle centre still inside a bone
 by the bones' triangles, which the fields miss next to thin bones, is put on its surface:
-:func:`_out_of_thin_bones`), or as the paper's sphere sets (a sphere carried past a
-bone's shell of spheres is pushed on through it; the Table 1 baseline). The solids are the
+:func:`~muscle_mss.core.exact_bone_distance.particles_out_of_bones`), or as the paper's sphere
+sets (a sphere carried past a bone's shell of spheres is pushed on through it; the Table 1
+baseline). The solids are the
 default because they are also the faster (``benchmarks/results/bone_contact.md``).
 """
 from __future__ import annotations
@@ -65,8 +66,7 @@ from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.cage import fibre_polylines
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.exact_bone_distance import push_out_exactly
-from muscle_mss.core.solid_contacts import kept_out_of_solids
+from muscle_mss.core.exact_bone_distance import particles_out_of_bones
 from muscle_mss.core.settings import (
     DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE, DEFAULT_BVH_MIN_PRIMITIVES,
     DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS, DEFAULT_METHOD,
@@ -96,22 +96,6 @@ def solid_bones(posed_bones) -> BoneSolids:
     spacing only because a shell of spheres needs it to be closed."""
     fields, transforms = bone_solids(posed_bones, BONES)
     return BoneSolids(fields, transforms, np.zeros(len(fields)))
-
-
-def _out_of_thin_bones(model: MSSModel, solids: BoneSolids, positions, collided):
-    """``(positions (n, 3) mm, collided (n,) bool)`` of a solve with the centre of every
-    particle the solids keep out (:func:`~muscle_mss.core.solid_contacts.kept_out_of_solids`)
-    that is exactly inside a bone put on that bone's surface
-    (:func:`~muscle_mss.core.exact_bone_distance.push_out_exactly`): the solvers' contacts
-    read the sampled fields, which are up to a few tenths of a millimetre off next to thin
-    forearm bones; the moved particles count as collided."""
-    active = kept_out_of_solids(model.fixed, model.boundary, model.radius,
-                                model.in_bone_at_rest)
-    push = push_out_exactly(solids.fields, positions, solids.transforms, active)
-    moved = (push != 0.0).any(axis=1)
-    if not moved.any():
-        return positions, collided
-    return positions + push, collided | moved
 
 
 def _muscle_block(name, block, known: dict | None = None):
@@ -370,7 +354,8 @@ class MSSCollisionSolver(MuscleFilter):
         result = self._solve(model, bones, solids, prepared)
         positions, collided = result.positions, result.collided
         if solids is not None:
-            positions, collided = _out_of_thin_bones(model, solids, positions, collided)
+            positions, collided = particles_out_of_bones(model, solids, positions,
+                                                         collided)
         items = []
         depth = bone_depths(positions, inputs[1], BONES)
         for m, ((name, block), part) in enumerate(zip(blocks, parts)):

@@ -144,7 +144,10 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     fibre_stats = {}
     for name, block in V.blocks(fibres, "deformed fibres"):
         strain = V.cell_array(block, A.FIBRE_STRAIN)
-        fibre_stats[name] = (float(strain.mean()), float(strain.max()))
+        fibre_stats[name] = {
+            A.MEAN_FIBRE_STRAIN: float(strain.mean()), A.MAX_FIBRE_STRAIN: float(strain.max()),
+            A.MEAN_END_TO_END_STRAIN: float(np.nanmean(V.cell_array(block, A.FIBRE_END_STRAIN))),
+            A.MAX_ARC_CHORD: float(np.nanmax(V.cell_array(block, A.FIBRE_ARC_CHORD)))}
     solve = {A.ITERATIONS: len(convergence[A.ITERATION]), A.CONVERGED: converged,
              A.SECONDS: seconds}
     by_muscle = {m: i for i, m in enumerate(table[A.MUSCLE])}
@@ -155,7 +158,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
             A.TIME: t, A.MUSCLE: name,
             A.REST_VOLUME: float(table[A.REST_VOLUME][r]), A.VOLUME: float(table[A.VOLUME][r]),
             A.VOLUME_ERROR_PCT: float(table[A.VOLUME_ERROR_PCT][r]),
-            A.MEAN_FIBRE_STRAIN: fibre_stats[name][0], A.MAX_FIBRE_STRAIN: fibre_stats[name][1],
+            **fibre_stats[name],
             A.SPHERE_OVERLAP_MM: float(penetration[k]),
             A.TISSUE_SHARE_PCT: float(V.field(blocks[name], A.TISSUE_SHARE_PCT)),
             **{c: _count_or_depth(c, table[c][r]) for c in SURFACE_COLUMNS},

@@ -36,7 +36,8 @@ from muscle_mss.core import mvc
 from muscle_mss.core.bone_distance import BoneFieldSet, push_out_of_bones
 from muscle_mss.core.exact_bone_distance import exact_signed_distances, push_out_exactly
 from muscle_mss.core.bone_field_sampling import DEFAULT_SPACING, bone_distance_field
-from muscle_mss.core.cage import Cage, fibre_polylines, muscle_cage, polyline_lengths
+from muscle_mss.core.cage import (Cage, fibre_polylines, muscle_cage, polyline_chords,
+                                  polyline_lengths)
 from muscle_mss.core.cage_drift import CAGE_DRIFT_LIMIT, cage_distances, cage_drift
 from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError
@@ -93,7 +94,8 @@ class MuscleBinding:
     ``offsets``, ``fibre_ids``: the fibres as from
     :func:`~muscle_mss.core.cage.fibre_polylines`; ``fibre_grid``: each fibre's grid cell, a
     VTK cell array shared by every time point's fibres (None when the model has none);
-    ``rest_lengths`` (F,) mm; ``triangles`` (t, 3) int64: the surface's; ``fibres``: the fibre
+    ``rest_lengths``, ``rest_chords`` (F,) mm: the fibres' lengths and the distances between
+    their ends at rest; ``triangles`` (t, 3) int64: the surface's; ``fibres``: the fibre
     polylines at rest with what does not change over time (cells, fibre_id, fibre_index,
     muscle_name), which each time point copies shallowly and moves; ``cage_distance`` (v,) mm:
     each rest vertex's distance to the rest cage (:mod:`muscle_mss.core.cage_drift`).
@@ -110,6 +112,7 @@ class MuscleBinding:
     fibre_ids: np.ndarray
     fibre_grid: object
     rest_lengths: np.ndarray
+    rest_chords: np.ndarray
     triangles: np.ndarray
     fibres: object
     cage_distance: np.ndarray
@@ -356,7 +359,9 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
                       .astype(np.int32))
     V.set_field(fibres, A.MUSCLE_NAME, name)
     return MuscleBinding(surface, rest_points, rest_positions, cage, rest_cage, weights, order,
-                         offsets, fibre_ids, grid, rest_lengths, np.ascontiguousarray(triangles),
+                         offsets, fibre_ids, grid, rest_lengths,
+                         polyline_chords(rest_positions, order, offsets),
+                         np.ascontiguousarray(triangles),
                          fibres, cage_distances(rest_cage, cage.triangles, rest_points))
 
 
@@ -468,6 +473,10 @@ def _muscle_outputs(name, binding: MuscleBinding, current, deformed, report):
     lengths = polyline_lengths(current, binding.order, binding.offsets)
     V.set_cell_array(polylines, A.FIBRE_LENGTH, lengths)
     V.set_cell_array(polylines, A.FIBRE_STRAIN, lengths / binding.rest_lengths - 1.0)
+    chords = polyline_chords(current, binding.order, binding.offsets)
+    with np.errstate(divide="ignore", invalid="ignore"):   # a closed fibre has no chord
+        V.set_cell_array(polylines, A.FIBRE_END_STRAIN, chords / binding.rest_chords - 1.0)
+        V.set_cell_array(polylines, A.FIBRE_ARC_CHORD, lengths / chords)
     if binding.fibre_grid is not None:
         polylines.GetCellData().AddArray(binding.fibre_grid)
     return surface, polylines

@@ -2,6 +2,7 @@
 earlier run is never clobbered silently, writes are checked and atomic, pictures render
 off-screen without X warnings."""
 import csv
+import math
 import os
 import subprocess
 import sys
@@ -145,8 +146,9 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
            "seconds": "0.7", "time": "0.5"}
     table = summary_table([row])
     header, _, line = table.splitlines()[:3]
-    columns = dict(zip(["muscle", "mean", "max", "strain", "overlap", "in bone", "pushed",
-                        "drift", "tissue", "iters", "seconds"], line.split()))
+    columns = dict(zip(["muscle", "mean", "max", "strain", "follows", "arc/chord", "overlap",
+                        "in bone", "pushed", "drift", "tissue", "iters", "seconds"],
+                       line.split()))
     assert "in bone mm" in header and "pushed mm" in header
     assert header.index("in bone mm") < header.index("pushed mm") < header.index("tissue %")
     assert columns["in bone"] == "0.000" and columns["pushed"] == "4.700"
@@ -157,4 +159,23 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
     assert warning.startswith("warning: vastus: surface vertices left their cage by more than "
                               "10 mm at 1 of 2 time points") and "13.9 mm, at t = 0.5 s" in warning
     no_bones = dict(row, new_in_bone_depth_mm="", new_in_bone_depth_after_push_mm="")
-    assert summary_table([no_bones]).splitlines()[2].split()[5:7] == ["-", "-"]
+    assert summary_table([no_bones]).splitlines()[2].split()[7:9] == ["-", "-"]
+    assert columns["follows"] == "-" and columns["arc/chord"] == "-"   # not in these rows
+
+
+def test_the_table_says_how_the_fibres_follow_their_muscles_length():
+    from muscle_mss.filters.cli import follow_slope, summary_table
+    base = {"muscle": "biceps", "volume_error_pct": "1.0", "max_fibre_strain": "0.0",
+            "sphere_overlap_mm": "0", "new_in_bone_depth_mm": "", "cage_drift_vertices": "0",
+            "new_in_bone_depth_after_push_mm": "", "cage_drift_mm": "0.5", "time": "0",
+            "tissue_share_pct": "0", "iterations": "500", "seconds": "0.5"}
+    # shortens 20 % while its fibres keep their length and fold: slope 0
+    folding = [dict(base, mean_end_to_end_strain=str(-0.1 * k), mean_fibre_strain="0.01",
+                    max_arc_chord=str(1.0 + 0.2 * k)) for k in range(3)]
+    following = [dict(r, mean_fibre_strain=str(0.9 * float(r["mean_end_to_end_strain"])))
+                 for r in folding]
+    assert follow_slope(folding) == pytest.approx(0.0)
+    assert follow_slope(following) == pytest.approx(0.9)
+    assert math.isnan(follow_slope(folding[:1]))        # one time point: no slope
+    line = summary_table(folding).splitlines()[2].split()
+    assert line[4:6] == ["0.00", "1.40"]

@@ -134,6 +134,10 @@ def test_fibres_are_polylines_through_their_particles_in_order():
             np.testing.assert_array_equal(walk, expected)
             length = np.linalg.norm(np.diff(expected, axis=0), axis=1).sum()
             assert V.cell_array(fibres, A.FIBRE_LENGTH)[cell] == pytest.approx(length, rel=1e-12)
+            chord = np.linalg.norm(expected[-1] - expected[0])
+            assert V.cell_array(fibres, A.FIBRE_ARC_CHORD)[cell] == pytest.approx(length / chord,
+                                                                                  rel=1e-12)
+            assert V.cell_array(fibres, A.FIBRE_ARC_CHORD)[cell] > 1.0   # jittered: bent
         grid = V.cell_array(fibres, A.FIBRE_GRID, required=False)
         assert (grid is not None) == (name == "vastus")
 
@@ -145,6 +149,9 @@ def test_uniform_stretch_gives_its_strain_and_volume():
     for name, fibres in V.blocks(f.GetOutputDataObject(1)):
         np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_STRAIN), stretch - 1.0,
                                    rtol=0, atol=1e-12)
+        np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_END_STRAIN), stretch - 1.0,
+                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_ARC_CHORD), 1.0, atol=1e-12)
     table = V.table_columns(probe(f.GetOutputDataObject(0), surfaces).GetOutputDataObject(1))
     np.testing.assert_allclose(table[A.VOLUME] / table[A.REST_VOLUME], stretch, rtol=1e-9)
     np.testing.assert_allclose(table[A.VOLUME_ERROR_PCT], 100.0 * (stretch - 1.0), rtol=1e-9)
