@@ -35,7 +35,8 @@ from muscle_mss.core.model import prepare
 from muscle_mss.core.settings import DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
-from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block, solid_bones
+from muscle_mss.filters.collision_solver import MSSCollisionSolver, solid_bones
+from muscle_mss.filters.model_blocks import muscle_block
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
@@ -57,7 +58,7 @@ def workload(pipeline, t):
     posed_bones = update_at(pipeline.pose, 1, t)
     bones = bone_sphere_set(posed_bones)
     model = MSSCollisionSolver._model([b for b, _ in blocks],
-                                      [_muscle_block(name, block) for name, block in blocks])
+                                      [muscle_block(name, block) for name, block in blocks])
     return model, bones, solid_bones(posed_bones)
 
 

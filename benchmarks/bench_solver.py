@@ -29,7 +29,8 @@ from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.settings import STRUCTURES, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
-from muscle_mss.filters.collision_solver import MSSCollisionSolver, _muscle_block
+from muscle_mss.filters.collision_solver import MSSCollisionSolver
+from muscle_mss.filters.model_blocks import muscle_block
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
@@ -62,7 +63,7 @@ def posed_workload(scene_folder, time_point, n):
     blocks = V.blocks(update_at(pipeline.pose, 0, time_point))
     posed_bones = update_at(pipeline.pose, 1, time_point)
     model = MSSCollisionSolver._model([b for b, _ in blocks],
-                                      [_muscle_block(name, block) for name, block in blocks])
+                                      [muscle_block(name, block) for name, block in blocks])
     centres, radii, ids = [], [], []
     for k, (name, bone) in enumerate(V.blocks(posed_bones)):
         c, r = bone_spheres(V.points_of(bone), V.triangles_of(bone), count=BONE_COUNTS[name])

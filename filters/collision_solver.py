@@ -17,11 +17,10 @@ inside a posed bone, by the bones' exact distance near their surfaces, and the d
 ``free_particles_new_in_bone`` / ``free_particle_new_in_bone_depth_mm`` (those of them not inside
 a bone at rest, ``in_bone_at_rest``: the goal is 0); ``Convergence`` — a table with one row per
 iteration: ``iteration``, ``mean_displacement_<muscle>`` per muscle (mm; the paper's figures 5
-and 6 in a line chart),
-``colliding_pairs``, ``max_penetration`` (mm, before that iteration's response, of the pairs it
-can resolve: not a fixed tendon sphere against its bone) and ``seconds``
-(cumulative); its field data ``projection_passes`` and ``remaining_penetration`` (mm) tell
-how many collision passes ran after the last iteration and the deepest overlap they left.
+and 6 in a line chart), ``colliding_pairs``, ``max_penetration`` (mm, before that iteration's
+response, of the pairs it can resolve: not a fixed tendon sphere against its bone) and
+``seconds`` (cumulative); its field data ``projection_passes`` and ``remaining_penetration``
+(mm) tell how many collision passes ran after the last iteration and the deepest overlap left.
 
 Two methods (property ``Method``): ``paper relaxation`` (the default,
 :mod:`muscle_mss.core.relaxation`) runs the paper's explicit iterations; ``quasi-static``
@@ -29,26 +28,26 @@ Two methods (property ``Method``): ``paper relaxation`` (the default,
 ``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
 is not the default: with ``ConnectiveTissue`` 0.1 it converges at every benchmarked pose of
 both demos at N = 20, but in 200-900 iterations, 2.7-14 s a pose
-(``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why).
-The quasi-static table
-adds a ``residual`` column (mm, per iteration); both tables carry field data ``method`` and
-``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap above
-``PenetrationTolerance``, or when the paper's displacement threshold fired). An unconverged
-quasi-static solve prints a warning (ParaView's output messages). Every solve starts from the
-posed state, so a time point's answer does not depend on the times solved before it (slider
-jumps, ``--time``, MPI ranks, a reopened state file); with ``WarmStart`` on, the filter keeps
-its last quasi-static solution and, asked for another pose of the same model with the same
-properties, starts from the posed particles plus the last solution's displacement from its own
-posed particles (faster along a motion, but the answer then depends on the order). Bones (``BoneContact``, both
-methods, the iterations and the final collision passes): as solids by default
-(:func:`solid_bones`: each bone's signed distance field, sampled once per bone shape by
+(``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why). The quasi-static
+table adds a ``residual`` column (mm, per iteration); both tables carry field data ``method``
+and ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap
+above ``PenetrationTolerance``, or when the paper's displacement threshold fired). An
+unconverged quasi-static solve prints a warning (ParaView's output messages). Every solve starts
+from the posed state, so a time point's answer does not depend on the times solved before it
+(slider jumps, ``--time``, MPI ranks, a reopened state file); with ``WarmStart`` on, the filter
+keeps its last quasi-static solution and, asked for another pose of the same model with the
+same properties, starts from the posed particles plus the last solution's displacement from its
+own posed particles (faster along a motion, but the answer then depends on the order). Bones
+(``BoneContact``, both methods, the iterations and the final collision passes): as solids by
+default (:func:`solid_bones`: each bone's signed distance field, sampled once per bone shape by
 :func:`~muscle_mss.filters.bone_sets.bone_solids`; a muscle sphere is pushed out along the
 distance gradient from any depth; after the solve a free particle centre still inside a bone
 by the bones' triangles, which the fields miss next to thin bones, is put on its surface:
 :func:`~muscle_mss.core.exact_bone_distance.particles_out_of_bones`), or as the paper's sphere
 sets (a sphere carried past a bone's shell of spheres is pushed on through it; the Table 1
-baseline). The solids are the
-default because they are also the faster (``benchmarks/results/bone_contact.md``).
+baseline). The solids are the default because they are also the faster
+(``benchmarks/results/bone_contact.md``). ``FibreShortening`` makes the springs' rest lengths
+follow fibres that shorten (:mod:`muscle_mss.core.fibre_shortening`).
 """
 from __future__ import annotations
 
@@ -64,9 +63,9 @@ from muscle_mss.core.model import MSSModel, PreparedModel, prepare
 from muscle_mss.core.solver import solve
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
-from muscle_mss.core.cage import fibre_polylines
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.exact_bone_distance import particles_out_of_bones
+from muscle_mss.core.fibre_shortening import shortened_rest_lengths
 from muscle_mss.core.settings import (
     DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE, DEFAULT_BVH_MIN_PRIMITIVES,
     DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS, DEFAULT_METHOD,
@@ -79,13 +78,10 @@ from . import array_names as A
 from .bone_sets import bone_depths, bone_solids, bone_sphere_set, particles_in_bones
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
+from .model_blocks import MODEL, MODEL_BLOCK, muscle_block
 from .properties import Property
 
-MODEL = "PosedModel"
-MODEL_BLOCK = "a model block of particles and spring lines"
 BONES = "PosedBones"
-POINT_ARRAYS = (A.REST_POSITION, A.FIBRE_ID, A.FIBRE_INDEX, A.FIXED, A.BOUNDARY, A.RADIUS, A.MASS)
-CELL_ARRAYS = (A.REST_LENGTH, A.STIFFNESS, A.DAMPING)
 BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES = "solid", "sphere set"
 BONE_CONTACTS = (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES)
 
@@ -96,71 +92,6 @@ def solid_bones(posed_bones) -> BoneSolids:
     spacing only because a shell of spheres needs it to be closed."""
     fields, transforms = bone_solids(posed_bones, BONES)
     return BoneSolids(fields, transforms, np.zeros(len(fields)))
-
-
-def _muscle_block(name, block, known: dict | None = None):
-    """Arrays of one muscle block, checked. ``known``: this function's answer for a block with
-    the same arrays (:func:`~muscle_mss.filters.vtk_arrays.arrays_identity`), whose arrays other
-    than the coordinates are then taken as they are (checked then)."""
-    where = f"{MODEL} block '{name}'"
-    V.require_polydata(block, where, MODEL_BLOCK)
-    n = block.GetNumberOfPoints()
-    if n == 0:
-        raise MuscleMSSError(f"{where} has no particles")
-    points = V.points_of(block)
-    if not np.isfinite(points).all():
-        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
-        raise MuscleMSSError(f"{where}: particle {bad} has a NaN or infinite position")
-    if known is not None:
-        return {**known, "points": points}
-    data = {key: V.point_array(block, key, where) for key in POINT_ARRAYS}
-    grid = V.point_array(block, A.FIBRE_GRID, where, required=False)
-    in_bone = V.point_array(block, A.IN_BONE_AT_REST, where, required=False)
-    if in_bone is not None and in_bone.size != n:
-        raise MuscleMSSError(f"{where}: array '{A.IN_BONE_AT_REST}' must have one value per "
-                             "particle")
-    offsets, connectivity = V.lines_of(block)
-    sizes = np.diff(offsets)
-    if (sizes != 2).any():
-        bad = int(np.flatnonzero(sizes != 2)[0])
-        raise MuscleMSSError(f"{where}: line cell {bad} has {int(sizes[bad])} points; springs "
-                             "must be two-point lines")
-    rest = data[A.REST_POSITION].reshape(n, -1)
-    if rest.shape[1] != 3 or not np.isfinite(rest).all():
-        raise MuscleMSSError(f"{where}: array '{A.REST_POSITION}' must have 3 finite components "
-                             "per particle")
-    springs = connectivity.reshape(-1, 2)
-    cells = {key: V.cell_array(block, key, where) for key in CELL_ARRAYS}
-    for key in (A.FIBRE_ID, A.FIBRE_INDEX, A.FIXED, A.BOUNDARY, A.RADIUS, A.MASS):
-        data[key] = data[key].reshape(-1)
-        if data[key].shape != (n,):
-            raise MuscleMSSError(f"{where}: array '{key}' must have one value per particle")
-    # each fibre's particles numbered 0..k-1 (the particle ordering and the volume cage rely
-    # on it; a cage that cannot be built would silently drop the muscle's volume term)
-    fibre_polylines(data[A.FIBRE_ID], data[A.FIBRE_INDEX], where)
-    for key in (A.RADIUS, A.MASS):
-        if not np.isfinite(data[key]).all() or (data[key] < 0).any():
-            raise MuscleMSSError(f"{where}: array '{key}' has a negative, NaN or infinite value")
-    free = data[A.FIXED] == 0
-    if (data[A.MASS][free] <= 0).any():
-        bad = int(np.flatnonzero(free & (data[A.MASS] <= 0))[0])
-        raise MuscleMSSError(f"{where}: particle {bad} is free with mass "
-                             f"{data[A.MASS][bad]}; a free particle needs a positive mass")
-    if len(springs) and (springs.min() < 0 or springs.max() >= n):
-        raise MuscleMSSError(f"{where}: a spring refers to a particle that does not exist")
-    for key in CELL_ARRAYS:
-        cells[key] = cells[key].reshape(-1)
-        if cells[key].shape != (len(springs),):
-            raise MuscleMSSError(f"{where}: cell array '{key}' must have one value per spring")
-        if not np.isfinite(cells[key]).all() or (cells[key] < 0).any():
-            bad = int(np.flatnonzero(~np.isfinite(cells[key]) | (cells[key] < 0))[0])
-            raise MuscleMSSError(f"{where}: spring {bad} has {key} {cells[key][bad]}; it must "
-                                 "be finite and 0 or more")
-    if len(springs) and (springs[:, 0] == springs[:, 1]).any():
-        bad = int(np.flatnonzero(springs[:, 0] == springs[:, 1])[0])
-        raise MuscleMSSError(f"{where}: spring {bad} joins particle {springs[bad, 0]} to itself")
-    return {"points": points, "springs": springs, "grid": grid, "in_bone": in_bone, **data,
-            **cells}
 
 
 class MSSCollisionSolver(MuscleFilter):
@@ -260,6 +191,14 @@ class MSSCollisionSolver(MuscleFilter):
                  "the shape does not depend on the iteration cap. Both methods; 0 is the "
                  "paper's model (muscles free between their tendons).",
                  minimum=0.0, group="Integration"),
+        Property("FibreShortening", "bool", False,
+                 "Fibres that shorten with their muscle: when a fibre's ends come closer than "
+                 "at rest (by the factor s), the springs' rest lengths along it follow (times "
+                 "s along the fibres, 1 / sqrt(s) across, the rest volume kept), so a "
+                 "shortening muscle shortens and thickens instead of keeping its fibre length "
+                 "and folding; lengthening fibres stretch as before. Both methods. Off: the "
+                 "paper's springs, bitwise today's results (core/fibre_shortening.py).",
+                 group="Integration"),
         Property("CollisionStructure", "enum", STRUCTURE_HASH,
                  "How colliding spheres are found. spatial hash: a uniform grid with candidate "
                  "lists, parallel (the fast default). octree BVH: the paper's per-object octree "
@@ -345,6 +284,10 @@ class MSSCollisionSolver(MuscleFilter):
                                  "muscle")
         identities, parts = zip(*(self._checked_block(name, block) for name, block in blocks))
         model = self._posed_model([name for name, _ in blocks], parts, identities)
+        if self.value("FibreShortening"):
+            # the rest lengths follow the pose: the spring layout is prepared for each pose
+            model = dataclasses.replace(model, rest_length=shortened_rest_lengths(model))
+            identities = None
         bones, solids = (None, None, None), None
         if self.choice("BoneContact") != BONE_CONTACT_SOLID:
             bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
@@ -446,7 +389,7 @@ class MSSCollisionSolver(MuscleFilter):
                           in_bone)
 
     def _checked_block(self, name, block):
-        """``(arrays identity, checked arrays)`` of one model block (:func:`_muscle_block`),
+        """``(arrays identity, checked arrays)`` of one model block (:func:`~muscle_mss.filters.model_blocks.muscle_block`),
         its arrays other than the coordinates taken from the last update when it had the same
         identity."""
         V.require_polydata(block, f"{MODEL} block '{name}'", MODEL_BLOCK)
@@ -454,8 +397,8 @@ class MSSCollisionSolver(MuscleFilter):
         known = self._blocks.get(name)
         if known is not None and known[0] == identity:
             self.setup_counts["remembered"] += 1
-            return identity, _muscle_block(name, block, known[1])
-        part = _muscle_block(name, block)
+            return identity, muscle_block(name, block, known[1])
+        part = muscle_block(name, block)
         self._blocks[name] = (identity, {k: v for k, v in part.items() if k != "points"})
         self.setup_counts["checked"] += 1
         return identity, part

@@ -30,7 +30,7 @@ def method_option(method: str) -> str:
 def add_run_options(p) -> None:
     """The options that set up a run (``argparse`` parser ``p``): what the filters compute
     (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``,
-    ``--connective-tissue``) and what is
+    ``--connective-tissue``, ``--fibre-shortening``) and what is
     written, and how (``--write``, ``--compressor``)."""
     p.add_argument("--resolution", type=int,
                    help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
@@ -53,6 +53,9 @@ def add_run_options(p) -> None:
                    help="connective tissue holding each free particle toward its posed position, "
                         "as a ratio to the springs' stiffness; 0: the paper's model "
                         f"(default {DEFAULT_CONNECTIVE_TISSUE:g})")
+    p.add_argument("--fibre-shortening", action="store_true", default=None,
+                   help="fibres shorten with their muscle instead of folding (the solver's "
+                        "FibreShortening; default off)")
 
 
 def settings_from(args) -> dict:
@@ -67,7 +70,8 @@ def settings_from(args) -> dict:
             f"it: drop --tolerance or add --method {method_option(METHOD_QUASI_STATIC)}")
     pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
              ("Iterations", args.iterations), ("Method", METHOD_OPTIONS.get(args.method)),
-             ("Tolerance", args.tolerance), ("ConnectiveTissue", args.connective_tissue))
+             ("Tolerance", args.tolerance), ("ConnectiveTissue", args.connective_tissue),
+             ("FibreShortening", args.fibre_shortening))
     return {name: value for name, value in pairs if value is not None}
 
 
