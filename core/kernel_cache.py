@@ -14,6 +14,7 @@ the user's cache folder.
 import hashlib
 import os
 import re
+import statistics
 import sys
 
 _RESOLVED = re.compile(r"numba-[0-9a-f]{16}-")
@@ -134,10 +135,15 @@ def mark_warm(seconds: float, folder: str | None = None) -> None:
         pass
 
 
+FULL_COMPILE_SECONDS = 30.0
+"""A recorded warm-up shorter than this found most kernels cached: not a cold compile."""
+
+
 def compile_estimate(base: str | None = None) -> float:
-    """Seconds a cold compile is expected to take: the longest one recorded on this machine for
-    this Python, Numba and NumPy (any version of the sources; a warm-up that found its kernels
-    cached records a few seconds only), else :data:`COMPILE_SECONDS`."""
+    """Seconds a cold compile is expected to take: the median of the cold compiles recorded on
+    this machine for this Python, Numba and NumPy (any version of the sources; warm-ups under
+    :data:`FULL_COMPILE_SECONDS` found their kernels cached), else :data:`COMPILE_SECONDS`. Not
+    the longest: one compile beside other work took 1,287 s where the others took 200-290 s."""
     import glob
     import json
     base = base_cache_dir() if base is None else base
@@ -148,7 +154,8 @@ def compile_estimate(base: str | None = None) -> float:
                 recorded.append(float(json.load(f)["seconds"]))
         except (OSError, ValueError, KeyError, TypeError):
             continue
-    return max(recorded, default=COMPILE_SECONDS)
+    cold = sorted(s for s in recorded if s >= FULL_COMPILE_SECONDS)
+    return float(statistics.median(cold)) if cold else COMPILE_SECONDS
 
 
 def compile_notice(seconds: float | None = None) -> str:

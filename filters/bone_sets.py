@@ -55,7 +55,7 @@ _cache = OrderedDict()      # key -> list of (points (n, 3), (centres (k, 3), ra
 #: unmodified blocks.
 field_counts = {"sampled": 0, "loaded": 0, "reused": 0, "moved": 0, "remembered": 0}
 _field_cache = OrderedDict()    # key -> list of (points (n, 3), BoneDistanceField)
-_field_surfaces = OrderedDict()  # id(field) -> (field, its surface (points, triangles))
+_field_surfaces = OrderedDict()  # id(field) -> (field, its PreparedSurface), fields cached
 _packed = {}                    # the last packed BoneFieldSet and the fields it holds
 _solids = OrderedDict()         # the blocks' VTK identities -> bone_solids' result
 _digests = OrderedDict()        # a cell array's VTK identity -> its triangles' digest
@@ -177,8 +177,10 @@ def cached_bone_field(points, triangles, where: str = "bone", digest=None):
         field_store.save(stored, field)
     _store(_field_cache, key, points, field)
     _field_surfaces[id(field)] = (field, prepared_surface(points, triangles, where))
-    while len(_field_surfaces) > 4 * CACHE_ENTRIES:     # a key of the cache may hold several
-        _field_surfaces.popitem(last=False)
+    if len(_field_surfaces) > CACHE_ENTRIES:        # forget the fields the cache dropped
+        cached = {id(f) for entries in _field_cache.values() for _, f in entries}
+        for key in [k for k in _field_surfaces if k not in cached]:
+            del _field_surfaces[key]
     return field, np.eye(3, 4)
 
 

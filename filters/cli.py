@@ -130,16 +130,17 @@ class ProgressBar:
 def summary_table(rows) -> str:
     """Per muscle over the whole motion: mean and max volume error, max fibre strain, how its
     fibres follow its end-to-end length (:func:`follow_slope`) and their largest arc / chord
-    (above 1 a fibre bends or folds), max sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
-    Deformer's push out) and before the push, the largest drift of a surface vertex off its
-    cage (mm), the largest share of the connective tissue in the muscle's load (%), mean
+    (above 1 a fibre bends or folds), max sphere overlap, the deepest surface vertex newly in a
+    bone as written (after the MVC Surface Deformer's push out) and before the push, the largest
+    drift of a surface vertex off its cage (mm), the largest share of the connective tissue in the muscle's load (%), mean
     iterations and seconds per time point; then the mean over muscles, and a line for each
     muscle with vertices that left their cage (:mod:`muscle_mss.core.cage_drift`)."""
     by_muscle = {}
     for r in rows:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
-              f"{'follows':>7s} {'arc/chord':>9s} {'overlap mm':>10s} {'in bone mm':>10s} {'pushed mm':>10s} {'drift mm':>8s} "
+              f"{'follows':>7s} {'arc/chord':>9s} {'overlap mm':>10s} {'in bone mm':>10s} "
+              f"{'pushed mm':>10s} {'drift mm':>8s} "
               f"{'tissue %':>8s} {'iters':>6s} {'s/time':>7s}")
     lines = [header, "-" * len(header)]
     means = []

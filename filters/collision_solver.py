@@ -389,7 +389,8 @@ class MSSCollisionSolver(MuscleFilter):
                           in_bone)
 
     def _checked_block(self, name, block):
-        """``(arrays identity, checked arrays)`` of one model block (:func:`~muscle_mss.filters.model_blocks.muscle_block`),
+        """``(arrays identity, checked arrays)`` of one model block
+        (:func:`~muscle_mss.filters.model_blocks.muscle_block`),
         its arrays other than the coordinates taken from the last update when it had the same
         identity."""
         V.require_polydata(block, f"{MODEL} block '{name}'", MODEL_BLOCK)

@@ -20,8 +20,8 @@ along the distance gradient (``KeepOutOfBones``); vertices inside a bone at rest
 pressed against its bone) are left alone; the push ends on the bone's triangles
 (:mod:`muscle_mss.core.exact_bone_distance`: the fields are millimetres off next to thin
 forearm bones), and inside and outside are decided by the exact distance near each surface.
-Each bone's posed transform is fitted from its rest and posed vertices. Reported per muscle: the point array ``new_in_bone_depth`` and the field
-data ``new_in_bone_vertices`` / ``new_in_bone_depth_mm`` (before the push) and
+Each bone's posed transform is fitted from its rest and posed vertices. Reported per muscle:
+the point array ``new_in_bone_depth`` and the field data ``new_in_bone_vertices`` / ``new_in_bone_depth_mm`` (before the push) and
 ``new_in_bone_vertices_after_push`` / ``new_in_bone_depth_after_push_mm``; a vertex counts as
 inside when deeper than :data:`INSIDE_TOLERANCE`.
 """

@@ -26,16 +26,17 @@ def test_marker_follows_the_sources_stamps(tmp_path, monkeypatch):
     assert not kernel_cache.is_warm(str(core))
 
 
-def test_estimate_is_the_longest_compile_recorded(tmp_path):
+def test_estimate_is_the_median_cold_compile_recorded(tmp_path):
     assert kernel_cache.compile_estimate(str(tmp_path)) == kernel_cache.COMPILE_SECONDS
-    for k, seconds in enumerate((95.0, 3.0)):
+    for k, seconds in enumerate((95.0, 3.0, 1287.0, 120.0)):
         folder = tmp_path / f"numba-{k}-{kernel_cache.runtime_tag()}"
         folder.mkdir()
         (folder / f"{kernel_cache.WARM_PREFIX}x.json").write_text(f'{{"seconds": {seconds}}}')
     other = tmp_path / "numba-0-cp27-numba0.1-numpy0.1"
     other.mkdir()
     (other / f"{kernel_cache.WARM_PREFIX}x.json").write_text('{"seconds": 999}')
-    assert kernel_cache.compile_estimate(str(tmp_path)) == 95.0
+    # 3 s found its kernels cached, another Python's 999 s does not count, one slow outlier
+    assert kernel_cache.compile_estimate(str(tmp_path)) == 120.0
 
 
 def test_ensure_compiled_says_so_once_and_records_the_cache_warm(tmp_path, monkeypatch):
