@@ -13,7 +13,7 @@ from muscle_mss.core.pose import pose_at
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point
-from muscle_mss.filters.scene_io import write_scene
+from arm_scenes import written_arm_at_full_flexion
 
 VOLUME_LIMIT_PCT = 6.0          # the paper's accepted volume error (§4)
 SURFACE_IN_BONE_LIMIT = 1.0     # mm
@@ -21,10 +21,8 @@ SURFACE_IN_BONE_LIMIT = 1.0     # mm
 
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory):
-    scene = demo_arm.demo_arm_scene("full")
     folder = tmp_path_factory.mktemp("elbow")
-    write_scene(scene, folder)
-    index = int(np.argmax(demo_arm.flexion_angles(scene.motion.times)))
+    scene, index = written_arm_at_full_flexion("full", folder)
     return scene, solve_time_point(build_pipeline(folder), index)
 
 

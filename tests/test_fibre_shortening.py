@@ -86,13 +86,10 @@ def test_the_elbow_demos_shortening_muscles_shorten_at_130_degrees_with_the_prop
     """Through the six filters (FibreShortening on the MSS Collision Solver): the biceps,
     brachialis and brachioradialis, whose ends come 20-30 % closer at 130 degrees, shorten
     their fibres instead of keeping their length; the lengthening triceps are unchanged."""
-    from muscle_mss.core import demo_arm
     from muscle_mss.filters import array_names as A
     from muscle_mss.filters.motion_run import build_pipeline, solve_time_point
-    from muscle_mss.filters.scene_io import write_scene
-    scene = demo_arm.demo_arm_scene("small")
-    write_scene(scene, tmp_path)
-    index = int(np.argmax(demo_arm.flexion_angles(scene.motion.times)))
+    from arm_scenes import written_arm_at_full_flexion
+    scene, index = written_arm_at_full_flexion("small", tmp_path)
     rows = {}
     for on in (False, True):
         result = solve_time_point(build_pipeline(tmp_path, {"FibreShortening": on}), index)

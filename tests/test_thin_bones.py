@@ -15,8 +15,8 @@ from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import INSIDE_TOLERANCE
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
-from muscle_mss.filters.scene_io import write_scene
 from muscle_mss.core.scene import Surface
+from arm_scenes import written_arm_at_full_flexion
 from surface_probes import inside, signed_distance
 
 EXACT_LIMIT = 0.1     # mm: the bound on anything newly inside a bone
@@ -25,10 +25,8 @@ AGREEMENT = 1e-6      # mm: reported depths against VTK's distance to the same t
 
 @pytest.fixture(scope="module")
 def arm_scene(tmp_path_factory):
-    scene = demo_arm.demo_arm_scene("small")
     folder = tmp_path_factory.mktemp("small_elbow")
-    write_scene(scene, folder)
-    index = int(np.argmax(demo_arm.flexion_angles(scene.motion.times)))
+    scene, index = written_arm_at_full_flexion("small", folder)
     return scene, folder, index
 
 
