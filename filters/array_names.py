@@ -83,6 +83,11 @@ MAX_PENETRATION = "max_penetration"  # float64, mm, the deepest overlap
 SECONDS = "seconds"                  # float64, s since the solve began (summary.csv: of the time
 #                                      point)
 RESIDUAL = "residual"                # column of the solver's table: mm, largest move of a step
+# field data of the solver's table: seconds of the solve's parts (the paper's Table 1 columns):
+# the mass-spring steps, muscle-muscle and muscle-bone collision detection with their response,
+# and the final collision passes
+PHASE_SECONDS = {"mss": "mss_seconds", "muscle_cd": "muscle_cd_seconds",
+                 "bone_cd": "bone_cd_seconds", "projection": "projection_seconds"}
 
 # Columns of summary.csv (besides MUSCLE, the probe's volumes and in-bone counts, the solver's
 # FREE_IN_BONE_FIELDS, CONVERGED and SECONDS above).

@@ -4,7 +4,8 @@
 writes the deterministic demo thigh scene (``--region arm``: the elbow) and its ``preview.png``;
 ``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE
 OUT`` does the same for a user's scene (see :mod:`muscle_mss.filters.run_output` for the files
-written).
+written); ``muscle-mss study SCENE OUT`` writes the paper's experiments and the fibre-length
+study as ``OUT/report.html`` (:mod:`muscle_mss.filters.study`).
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.scene import Scene
 
 from . import array_names as A
+from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
 from .run_options import add_run_options, settings_from, writing_from
 
 
@@ -129,12 +131,14 @@ class ProgressBar:
 
 def summary_table(rows) -> str:
     """Per muscle over the whole motion: mean and max volume error, max fibre strain, how its
-    fibres follow its end-to-end length (:func:`follow_slope`) and their largest arc / chord
-    (above 1 a fibre bends or folds), max sphere overlap, the deepest surface vertex newly in a
-    bone as written (after the MVC Surface Deformer's push out) and before the push, the largest
-    drift of a surface vertex off its cage (mm), the largest share of the connective tissue in the muscle's load (%), mean
+    fibres follow its end-to-end length (:func:`~.study.follow_slope`) and their largest arc /
+    chord (above 1 a fibre bends or folds), max sphere overlap, the deepest surface vertex newly
+    in a bone as written (after the MVC Surface Deformer's push out) and before the push, the
+    largest drift of a surface vertex off its cage (mm), the largest share of the connective
+    tissue in the muscle's load (%), mean
     iterations and seconds per time point; then the mean over muscles, and a line for each
     muscle with vertices that left their cage (:mod:`muscle_mss.core.cage_drift`)."""
+    from .study import follow_slope
     by_muscle = {}
     for r in rows:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
@@ -171,28 +175,6 @@ def summary_table(rows) -> str:
                 "point data cage_drift): the surface there does not follow the particles (a "
                 "surface much finer than its cage: raise ParticlesPerFibre)")
     return "\n".join(lines)
-
-
-FOLLOW_SPAN = 0.05
-"""The least spread (max - min) of a muscle's mean end-to-end strain over a motion for
-:func:`follow_slope` to give a slope."""
-
-
-def follow_slope(rows) -> float:
-    """How a muscle's fibres follow its end-to-end length over the time points ``rows``: the
-    least-squares slope of ``mean_fibre_strain`` against ``mean_end_to_end_strain`` (1: the
-    fibres lengthen and shorten with the muscle; near 0: they keep their length, and a
-    shortening muscle folds). NaN when the end-to-end strain spreads less than
-    :data:`FOLLOW_SPAN` (one time point, a muscle the motion does not stretch)."""
-    pairs = [(float(r[A.MEAN_END_TO_END_STRAIN]), float(r[A.MEAN_FIBRE_STRAIN])) for r in rows
-             if r.get(A.MEAN_END_TO_END_STRAIN, "") != ""]
-    ends = [e for e, _ in pairs]
-    if not pairs or max(ends) - min(ends) < FOLLOW_SPAN:
-        return math.nan
-    mean_e = sum(ends) / len(ends)
-    mean_f = sum(f for _, f in pairs) / len(pairs)
-    return (sum((e - mean_e) * (f - mean_f) for e, f in pairs)
-            / sum((e - mean_e) ** 2 for e in ends))
 
 
 def _or_dash(value: float, width: int, digits: int) -> str:
@@ -257,11 +239,13 @@ def compile_kernels() -> None:
 
 
 @contextlib.contextmanager
-def held_output_folder(out: str, overwrite: bool):
+def held_output_folder(out: str, overwrite: bool, study: bool = False):
     """:func:`run_output.output_folder` saying what it did: a lock taken over, an earlier run
-    replaced."""
+    replaced; ``study``: for a study's files (:data:`~.study_report.STUDY_FILES`)."""
     from .run_output import output_folder
-    with output_folder(out, overwrite) as (removed, note):
+    from .study_report import STUDY_FILES
+    names = {"names": STUDY_FILES, "folders": ()} if study else {}
+    with output_folder(out, overwrite, **names) as (removed, note):
         if note:
             print(note, file=sys.stderr)
         if removed:
@@ -303,6 +287,36 @@ def run_time_point(args, settings, writing) -> None:
     run_output.write_summary(args.out, result.rows)
     run_output.write_index(args.out, [result.time], [result.index], writing.series)
     print(summary_table(result.rows))
+
+
+def cmd_study(args) -> int:
+    """``muscle-mss study``: the paper's experiments and the fibre-length study on a scene."""
+    from .scene_io import load_scene
+    scene = load_scene(args.scene)
+    print(f"{args.scene}: {scene_counts(scene)}")
+    compile_kernels()
+    with held_output_folder(args.out, args.overwrite, study=True):
+        path = study_into(args.scene, args.out, args.resolution, args.time)
+    print(f"wrote {path} (figures as PNG, their numbers as CSV beside it)")
+    return 0
+
+
+def study_into(scene_folder: str, out: str, resolution=None, time=None) -> str:
+    """Run :func:`~muscle_mss.filters.study.run_study` with a progress bar and write its
+    report into ``out`` (held by the caller); the report's path."""
+    from .scene_io import load_scene
+    from .study import run_study
+    from .study_report import write_report
+    motion = load_scene(scene_folder).motion
+    index = (farthest_pose_index(motion) if time is None
+             else time_point_index(list(motion.times), time))
+    bars = {}
+
+    def progress(label, done, total):
+        bars.setdefault(label, ProgressBar(total, label)).update(done)
+
+    study = run_study(scene_folder, resolution or DEFAULT_PARTICLES_PER_FIBRE, index, progress)
+    return write_report(study, out)
 
 
 def time_point_index(times, time: float) -> int:
@@ -358,6 +372,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the results of an earlier run in OUT (refused without it)")
     add_run_options(p)
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("study", help="the paper's experiments (spring layouts, volume, time "
+                                     "split) and the fibre-length study: OUT/report.html")
+    p.add_argument("scene", help="scene folder")
+    p.add_argument("out", help="output folder")
+    p.add_argument("--time", type=float,
+                   help="the layouts' pose: the time point nearest this time (s; default the "
+                        "most flexed, where the bones are rotated farthest from rest)")
+    p.add_argument("--resolution", type=int, help="particles per fibre N (default "
+                                                       f"{DEFAULT_PARTICLES_PER_FIBRE})")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier study in OUT (refused without it)")
+    p.set_defaults(func=cmd_study)
     return parser
 
 

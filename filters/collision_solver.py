@@ -331,6 +331,8 @@ class MSSCollisionSolver(MuscleFilter):
                      else result.stopped_by == TERMINATION_THRESHOLD)
         V.set_field(outputs[1], A.CONVERGED, int(converged))
         V.set_field(outputs[1], A.METHOD, self.choice("Method"))
+        for part, name in A.PHASE_SECONDS.items():
+            V.set_field(outputs[1], name, float(result.phase_seconds.get(part, 0.0)))
         if quasi_static and not converged:
             to_go = Q.distance_to_go(result.residual)
             still = (f"the steps still to come would move one about {to_go:.3g} mm more"

@@ -103,10 +103,12 @@ def convergence_file(index: int) -> str:
 
 
 @contextlib.contextmanager
-def output_folder(out: str, overwrite: bool = False):
+def output_folder(out: str, overwrite: bool = False, names=RUN_FILES,
+                  folders=(SERIES_FOLDER, CONVERGENCE_FOLDER)):
     """Hold ``out`` for a run (its lock, :mod:`~muscle_mss.filters.output_folder`) for the
     ``with`` block, after checking it before solving: created if missing, writable, no name of
-    :data:`RUN_FILES` taken by a file or folder the run did not write, and no previous run's
+    ``names`` (the run's files and ``folders``; default a motion run's, :data:`RUN_FILES`)
+    taken by a file or folder the run did not write, and no previous run's
     results, which ``overwrite`` removes (the files its manifest lists, so that no file of the
     earlier run, e.g. a time point it had in addition, stays beside the new ones). Yields
     ``(removed, note)``: the relative paths removed and the note of a lock taken over (or
@@ -119,7 +121,7 @@ def output_folder(out: str, overwrite: bool = False):
         raise MuscleMSSError(f"output folder {out} cannot be written: "
                              f"{err.strerror or err}") from None
     with folder.output_lock(out) as note:
-        yield folder.prepare(out, overwrite, RUN_FILES, (SERIES_FOLDER, CONVERGENCE_FOLDER)), note
+        yield folder.prepare(out, overwrite, names, folders), note
 
 
 def write_time_point(result, out: str, series_names=SERIES,

@@ -3,13 +3,16 @@
     pvpython -m muscle_mss.plugin.batch SCENE OUT [--resolution N] [--layout L] [--iterations K]
         [--method M] [--tolerance MM] [--write SERIES] [--compressor C] [--overwrite]
     mpiexec -n K pvbatch --sym -m muscle_mss.plugin.batch SCENE OUT [...]
+    pvpython -m muscle_mss.plugin.batch --study SCENE OUT [--time T] [--resolution N]
 
 (with ``plugin/shim`` on PYTHONPATH for Debian's ParaView 5.11, see the README). Writes the
 ``.pvd`` series of deformed surfaces, fibres and particles and ``OUT/summary.csv``
 (``muscle_mss.filters.run_output``). Under MPI rank r of K computes the r-th of K contiguous
 blocks of time points in time order, warm starting each from the one before it within its block
 (the quasi-static method; with the paper's, the default, every time point starts from its posed
-state and the ranks give the serial run's results).
+state and the ranks give the serial run's results). ``--study`` writes the paper's experiments
+and the fibre-length study instead, as ``muscle-mss study`` does (``OUT/report.html``,
+:mod:`muscle_mss.filters.study`), in one process.
 """
 import argparse
 import contextlib
@@ -29,8 +32,40 @@ def parse_args(argv):
     parser.add_argument("out", help="output folder")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in OUT (refused without it)")
+    parser.add_argument("--study", action="store_true",
+                        help="write the study report (muscle-mss study) instead of the motion's "
+                             "series; only --resolution and --time apply")
+    parser.add_argument("--time", type=float,
+                        help="with --study: the layouts' pose, the time point nearest this time "
+                             "(s; default the most flexed)")
     add_run_options(parser)
     return parser.parse_args(argv)
+
+
+STUDY_IGNORES = ("layout", "iterations", "method", "tolerance", "connective_tissue",
+                 "fibre_shortening", "write")
+"""Run options a study does not take (it runs every layout, the filters' defaults)."""
+
+
+def _study(args, size) -> int:
+    """``--study``: the report of :mod:`muscle_mss.filters.study`, in this one process."""
+    from muscle_mss.core.errors import MuscleMSSError
+    from muscle_mss.filters.cli import held_output_folder, study_into
+    ignored = [f"--{name.replace('_', '-')}" for name in STUDY_IGNORES
+               if getattr(args, name) is not None]
+    problem = ("the study runs in one process: start it with pvpython, not under mpiexec"
+               if size > 1 else f"{', '.join(ignored)} do not apply to --study (it runs "
+               "every layout with the filters' defaults): drop them" if ignored else None)
+    try:
+        if problem:
+            raise MuscleMSSError(problem)
+        with held_output_folder(args.out, args.overwrite, study=True):
+            path = study_into(args.scene, args.out, args.resolution, args.time)
+    except MuscleMSSError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    print(f"wrote {path}")
+    return 0
 
 
 def _controller():
@@ -59,6 +94,11 @@ def main(argv=None) -> int:
     if rank == 0:
         from muscle_mss.filters.warm_up import ensure_compiled, stderr_notice
         ensure_compiled(stderr_notice)
+    if args.study or args.time is not None:
+        if not args.study:
+            print("error: --time applies only to --study", file=sys.stderr)
+            return 1
+        return _study(args, size) if rank == 0 else 1
     failed = 0
     try:
         writing, settings = writing_from(args), settings_from(args)

@@ -164,7 +164,8 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
 
 
 def test_the_table_says_how_the_fibres_follow_their_muscles_length():
-    from muscle_mss.filters.cli import follow_slope, summary_table
+    from muscle_mss.filters.cli import summary_table
+    from muscle_mss.filters.study import follow_slope
     base = {"muscle": "biceps", "volume_error_pct": "1.0", "max_fibre_strain": "0.0",
             "sphere_overlap_mm": "0", "new_in_bone_depth_mm": "", "cage_drift_vertices": "0",
             "new_in_bone_depth_after_push_mm": "", "cage_drift_mm": "0.5", "time": "0",

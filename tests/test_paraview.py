@@ -5,6 +5,7 @@ Each test starts ParaView's own executables with this checkout on PYTHONPATH thr
 """
 import json
 
+import numpy as np
 import pytest
 
 from paraview_support import SCRIPTS, run_script
@@ -106,8 +107,16 @@ def test_state_file_reloads_to_the_same_numbers(small_scene, small_scene_dir, tm
 
 
 def test_saved_state_hides_fibres_charts_every_muscle_and_follows_the_colour_range(
-        small_scene, small_scene_dir, tmp_path):
+        small_scene, small_scene_dir, venv_chain, tmp_path):
+    """The saved state hides the fibres, charts every muscle's convergence and its mean fibre
+    strain over the whole motion (a line per muscle, labelled by name, the venv chain's
+    numbers), and colours by a range that follows the time shown."""
     import shutil
+    import numpy as np
+    from muscle_mss.filters import array_names as A
+    from muscle_mss.filters import vtk_arrays as V
+    from muscle_mss.filters.motion_run import update_at
+    from muscle_mss.plugin.pipeline import fibre_strain_series
     from paraview_support import run
     work = tmp_path / "review"
     shutil.copytree(small_scene_dir, work / "data")
@@ -119,6 +128,18 @@ def test_saved_state_hides_fibres_charts_every_muscle_and_follows_the_colour_ran
     assert shown["fibres_visible"] is False
     assert sorted(shown["chart_series"]) == sorted(f"mean_displacement_{m}"
                                                    for m in small_scene.muscles)
+    muscles = list(small_scene.muscles)
+    assert shown["strain_series"] == fibre_strain_series(muscles)
+    labels = dict(zip(shown["strain_labels"][0::2], shown["strain_labels"][1::2]))
+    assert [labels[s] for s in fibre_strain_series(muscles)] == muscles
+    values = np.array(shown["strain_values"])            # (muscles, time points)
+    times = small_scene.motion.times
+    assert values.shape == (len(muscles), len(times))
+    for k in (0, 15):
+        fibres = dict(V.blocks(update_at(venv_chain.deformer, 1, float(times[k]))))
+        expected = [V.cell_array(fibres[m], A.FIBRE_STRAIN).mean() for m in muscles]
+        np.testing.assert_allclose(values[:, k], expected, rtol=0, atol=1e-9)
+    assert np.ptp(values, axis=1).max() > 0.01          # the strains change over the motion
     (_, first), (_, second) = shown["ranges"]
     assert abs(second[1] - first[1]) > 0.2 * first[1]  # the two times differ enough to tell
     for colours, data in shown["ranges"]:
@@ -164,6 +185,37 @@ def test_mpi_batch_equals_the_serial_batch(small_scene_dir, tmp_path):
     assert len(table(serial)) > 0
     for name in ("surfaces.pvd", "fibres.pvd", "particles.pvd"):
         assert (serial / name).read_text() == (parallel / name).read_text()
+
+
+def test_pvpython_batch_writes_the_study_the_cli_writes(small_scene, small_scene_dir, tmp_path):
+    """``pvpython -m muscle_mss.plugin.batch --study`` (issue 29) writes the report and the
+    tables ``muscle-mss study`` writes in the venv, with the same numbers; under MPI it is
+    refused with a message."""
+    import csv
+    import subprocess
+    from paraview_support import REPO, paraview_env, run
+    from muscle_mss.filters.cli import main
+    from muscle_mss.filters.study_report import STUDY_FILES
+    t = float(small_scene.motion.times[10])
+    run(["pvpython", "-m", "muscle_mss.plugin.batch", "--study", small_scene_dir,
+         tmp_path / "pv", "--time", str(t)])
+    assert main(["study", str(small_scene_dir), str(tmp_path / "venv"), "--time", str(t)]) == 0
+    assert all((tmp_path / "pv" / name).stat().st_size > 0 for name in STUDY_FILES)
+
+    def table(folder, name, columns):
+        with open(folder / name, newline="") as f:
+            return [[row[c] for c in columns] for row in csv.DictReader(f)]
+    for name, columns in (("volume.csv", ["volume_error_pct"]),
+                          ("fibre_length.csv", ["mean_fibre_strain", "path_length_mm"]),
+                          ("layouts.csv", ["springs_per_particle", "mean_volume_error_pct"])):
+        pv, venv = (np.array(table(f, name, columns), dtype=float)
+                    for f in (tmp_path / "pv", tmp_path / "venv"))
+        np.testing.assert_allclose(pv, venv, rtol=1e-6, atol=1e-9, err_msg=name)
+    refused = subprocess.run(
+        ["mpiexec", "--allow-run-as-root", "--oversubscribe", "-n", "2", "pvbatch", "--sym",
+         "-m", "muscle_mss.plugin.batch", "--study", str(small_scene_dir), str(tmp_path / "mpi")],
+        cwd=REPO, env=paraview_env(), capture_output=True, text=True, timeout=600)
+    assert refused.returncode != 0 and "start it with pvpython" in refused.stderr
 
 
 def _paraview_kernels_unmarked(folder):
@@ -220,6 +272,7 @@ def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
     from muscle_mss.core.demo_scene import MUSCLE_NAMES, demo_scene
     from muscle_mss.core.motion import farthest_pose_index
     from muscle_mss.filters.scene_io import write_scene
+    from muscle_mss.plugin.pipeline import fibre_strain_series
 
     scene = demo_scene("full")
     write_scene(scene, tmp_path / "demo_out" / "scene")  # where ./demo.sh puts it
@@ -231,6 +284,11 @@ def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
     shown = run_script("xvfb-run", "-a", "pvpython", "state_displays.py", state, tmp_path)
     assert shown["fibres_visible"] is False
     assert sorted(shown["chart_series"]) == sorted(f"mean_displacement_{m}" for m in MUSCLE_NAMES)
+    assert shown["strain_series"] == fibre_strain_series(MUSCLE_NAMES)
+    labels = dict(zip(shown["strain_labels"][0::2], shown["strain_labels"][1::2]))
+    assert [labels[s] for s in fibre_strain_series(MUSCLE_NAMES)] == list(MUSCLE_NAMES)
+    assert len(shown["strain_values"]) == len(MUSCLE_NAMES)
+    assert all(len(v) == len(scene.motion.times) for v in shown["strain_values"])
 
 
 @pytest.mark.parametrize("settings, message", [

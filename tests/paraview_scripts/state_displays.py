@@ -1,13 +1,15 @@
 """pvpython (under xvfb-run), a fresh process: load the plugin, then STATE with its data files
 under DATA_DIR, and print what the state shows: whether the fibres are visible, the chart's
-series, and the displacement colour range against the data's range at two times (the
-state's, then the first time point). Arguments: STATE DATA_DIR."""
+series, the fibre strain chart's series, labels and values, and the displacement colour range
+against the data's range at two times (the state's, then the first time point). Arguments: STATE
+DATA_DIR."""
 import json
 import sys
 
 from paraview import simple
 
-from muscle_mss.plugin.pipeline import load_plugin
+from muscle_mss.filters import vtk_arrays as V
+from muscle_mss.plugin.pipeline import FIBRE_STRAIN_OVER_TIME, load_plugin
 
 state, data_dir = sys.argv[1], sys.argv[2]
 load_plugin()
@@ -15,14 +17,19 @@ simple.LoadState(state, data_directory=data_dir, restrict_to_data_directory=True
 views = {v.GetXMLName(): v for v in simple.GetViews()}
 
 
-def shown(view, label, port):
-    """The representation in ``view`` of output ``port`` of the source labelled ``label``."""
-    for rep in view.Representations:
-        inputs = rep.GetProperty("Input")
-        if inputs is not None and inputs.GetNumberOfProxies() \
-                and inputs.GetProxy(0).GetXMLLabel() == label \
-                and inputs.GetOutputPortForConnection(0) == port:
-            return rep
+def shown(kind, label, port):
+    """The representation in a view of ``kind`` of output ``port`` of the source registered
+    as ``label``."""
+    source = simple.FindSource(label)
+    for view in simple.GetViews():
+        if view.GetXMLName() != kind:
+            continue
+        for rep in view.Representations:
+            inputs = rep.GetProperty("Input")
+            if inputs is not None and inputs.GetNumberOfProxies() \
+                    and source is not None and inputs.GetProxy(0) == source.SMProxy \
+                    and inputs.GetOutputPortForConnection(0) == port:
+                return rep
     raise SystemExit(f"the state shows no output {port} of {label}")
 
 
@@ -39,9 +46,17 @@ def colour_and_data_range(t):
 
 times = list(simple.GetAnimationScene().TimeKeeper.TimestepValues)
 state_time = simple.GetAnimationScene().AnimationTime
-fibres = shown(views["RenderView"], "MVC Surface Deformer", 1)
-chart = shown(views["XYChartView"], "MSS Collision Solver", 1)
+fibres = shown("RenderView", "MVC Surface Deformer", 1)
+chart = shown("XYChartView", "MSS Collision Solver", 1)
+strain = shown("XYChartView", FIBRE_STRAIN_OVER_TIME, 0)
+over_time = simple.FindSource(FIBRE_STRAIN_OVER_TIME)
+over_time.UpdatePipeline()
+tables = [block for _, block in V.blocks(over_time.GetClientSideObject().GetOutputDataObject(0))]
+strain_values = [list(V.table_columns(t)["avg(fibre_strain)"]) for t in tables]
 ranges = [colour_and_data_range(t) for t in (state_time, times[0])]
 print("RESULT " + json.dumps({"fibres_visible": bool(fibres.Visibility),
                               "chart_series": list(chart.SeriesVisibility),
+                              "strain_series": list(strain.SeriesVisibility),
+                              "strain_labels": list(strain.SeriesLabel),
+                              "strain_values": [[float(v) for v in t] for t in strain_values],
                               "ranges": ranges, "times": [state_time, times[0]]}))

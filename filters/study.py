@@ -1,0 +1,317 @@
+"""The paper's experiments (Janák & Kohout 2014, section 4) and its partner study's fibre lengths,
+measured on one scene through the six filters: what ``muscle-mss study`` and
+``muscle_mss.plugin.batch --study`` compute (:mod:`~muscle_mss.filters.study_report` writes it).
+
+* **Spring layouts** (the paper's Fig. 5 and 6) at one pose, by default the most flexed
+  (:func:`~muscle_mss.core.motion.farthest_pose_index`): for each of the Spring Builder's layouts
+  the paper relaxation's mean particle displacement per iteration per muscle, the slope of its
+  later ("stabilisation") phase, the iterations it needs to fall below the solver's
+  DisplacementThreshold, the quasi-static method's iterations and seconds to converge, springs
+  per particle, the model's memory, volume error, and how far the layouts' solved shapes lie
+  apart.
+* **Fibre length over the motion**: per muscle and time point the fibres' length relative to
+  rest (mean, least, largest over the fibres), beside the muscle-tendon path length (origin to
+  insertion between the centroids of the fibres' posed end particles, which sit on the bones),
+  and buckling as a number: each fibre's tortuosity (arc length over chord), the fibres above
+  :data:`ARC_CHORD_LIMIT` counted.
+* **Volume** per muscle over the motion, against the paper's :data:`PAPER_VOLUME_ERROR_PCT`
+  mean and :data:`ACCEPTED_VOLUME_ERROR_PCT` accepted.
+* **Time split**: the solver's seconds per part (the paper's Table 1 columns) over the motion.
+"""
+from __future__ import annotations
+
+import math
+import platform
+import time as wallclock
+from dataclasses import dataclass
+
+import numpy as np
+
+from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.settings import (DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_TIME_STEP,
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION)
+
+from . import array_names as A
+from . import vtk_arrays as V
+from .motion_run import build_pipeline, solve_time_point
+from .spring_builder import DEFAULT_LAYOUT, LAYOUTS
+
+ARC_CHORD_LIMIT = 1.1
+"""A fibre whose arc length exceeds its chord (end-to-end distance) by more than 10 % is counted
+as buckled (issue 31's bound): a straight or gently curved fibre stays below, a fibre folding
+instead of shortening goes above (1.3-1.75 at the elbow's 130 degrees without
+``FibreShortening``). Fibres curved at rest can start above it (the demo thigh's adductor
+brevis, 1.24): the report gives each muscle's rest value beside it."""
+PAPER_VOLUME_ERROR_PCT = 2.71
+"""The paper's mean volume error over its motion (%)."""
+ACCEPTED_VOLUME_ERROR_PCT = 6.0
+"""The volume error the paper accepts (%)."""
+SLOPE_WINDOW = (0.5, 1.0)
+"""The later phase of the paper relaxation whose slope Fig. 6 compares: these fractions of the
+iterations (the second half), fitted as log10(mean displacement) against the iteration."""
+LAYOUT_TISSUE = 0.1
+"""ConnectiveTissue of the layouts' quasi-static solves (issue 26's converging ratio): without
+tissue the slender muscles' equilibrium is not determined and no layout converges at a flexed
+pose."""
+TIME_STEP_HALVINGS = 2
+"""How often a layout's paper relaxation may halve the TimeStep after a muscle diverged."""
+LAYOUT_QUASI_STATIC_CAP = 1500
+"""Iterations the layouts' quasi-static solves may take."""
+PHASES = tuple(A.PHASE_SECONDS)
+"""The solver's parts: MSS steps, muscle-muscle and muscle-bone collision detection and response,
+final collision passes."""
+
+
+@dataclass
+class LayoutResult:
+    """One layout at the study's pose. ``displacement`` (K, M) mm: the paper relaxation's mean
+    particle displacement per iteration per muscle; ``slopes`` (M,) its later phase's slope
+    (log10 mm per iteration, :data:`SLOPE_WINDOW`); ``to_threshold``: the first iteration at
+    which every muscle moved less than the DisplacementThreshold (0: not within the
+    iterations); ``paper_seconds`` the relaxation's; ``quasi_static`` (iterations, seconds,
+    converged) of the quasi-static solve (ConnectiveTissue :data:`LAYOUT_TISSUE`);
+    ``springs_per_particle``; ``memory_mb`` the Spring Builder's output (VTK's actual memory
+    size); ``volume_error`` (M,) % of the relaxation's surfaces; ``positions`` (n, 3) mm its
+    solved particles; ``time_step`` (s) the relaxation's."""
+
+    layout: str
+    displacement: np.ndarray
+    slopes: np.ndarray
+    to_threshold: int
+    paper_seconds: float
+    quasi_static: tuple
+    springs_per_particle: float
+    memory_mb: float
+    volume_error: np.ndarray
+    positions: np.ndarray
+    time_step: float
+
+
+@dataclass
+class MotionSeries:
+    """The whole motion at the default layout, (T, M) arrays over time points and muscles.
+    ``fibre_strain`` (T, M, 3): the fibres' length over rest minus 1, mean / least / largest
+    over the muscle's fibres; ``path_length`` (T, M) mm and ``path_strain`` (T, M) the
+    muscle-tendon path (module docstring) and its change from rest; ``arc_chord`` (T, M) the
+    largest fibre tortuosity, ``rest_arc_chord`` (M,) that at rest, ``buckled`` (T, M) fibres
+    above :data:`ARC_CHORD_LIMIT`;
+    ``volume_error`` (T, M) %; ``phases`` (T, 4) s the solver's parts (:data:`PHASES`);
+    ``rows`` the summary rows (``summary.csv``'s columns) in time order."""
+
+    times: np.ndarray
+    muscles: list
+    fibre_strain: np.ndarray
+    path_length: np.ndarray
+    path_strain: np.ndarray
+    arc_chord: np.ndarray
+    rest_arc_chord: np.ndarray
+    buckled: np.ndarray
+    volume_error: np.ndarray
+    phases: np.ndarray
+    rows: list
+
+
+@dataclass
+class Study:
+    """A scene's study: its pose (``index``, ``time``), the particles per fibre, one
+    :class:`LayoutResult` per layout, the :class:`MotionSeries`, the machine and seconds."""
+
+    scene: str
+    index: int
+    time: float
+    resolution: int
+    layouts: list
+    motion: MotionSeries
+    machine: str
+    seconds: float
+
+
+def fibre_statistics(block, limit: float = ARC_CHORD_LIMIT):
+    """One deformed fibre block (the MVC Surface Deformer's polylines): ``(mean, least,
+    largest fibre strain, largest arc/chord, fibres above limit)``."""
+    strain = V.cell_array(block, A.FIBRE_STRAIN)
+    arc_chord = V.cell_array(block, A.FIBRE_ARC_CHORD)
+    return (float(strain.mean()), float(strain.min()), float(strain.max()),
+            float(np.nanmax(arc_chord)), int(np.count_nonzero(arc_chord > limit)))
+
+
+def path_lengths(block) -> tuple:
+    """One solved muscle block: ``(posed, rest)`` mm, the distance between the centroid of its
+    fibres' first (origin) end particles and that of their last (insertion) ones."""
+    points = V.points_of(block)
+    rest = V.point_array(block, A.REST_POSITION).reshape(-1, 3)
+    index = V.point_array(block, A.FIBRE_INDEX).ravel()
+    fixed = V.point_array(block, A.FIXED).ravel().astype(bool)
+    origin = fixed & (index == 0)
+    insertion = fixed & (index == index.max())
+    return tuple(float(np.linalg.norm(x[insertion].mean(axis=0) - x[origin].mean(axis=0)))
+                 for x in (points, rest))
+
+
+FOLLOW_SPAN = 0.05
+"""The least spread (max - min) of a muscle's mean end-to-end strain over a motion for
+:func:`follow_slope` to give a slope."""
+
+
+def follow_slope(rows) -> float:
+    """How a muscle's fibres follow its end-to-end length over the time points ``rows``: the
+    least-squares slope of ``mean_fibre_strain`` against ``mean_end_to_end_strain`` (1: the
+    fibres lengthen and shorten with the muscle; near 0: they keep their length, and a
+    shortening muscle folds). NaN when the end-to-end strain spreads less than
+    :data:`FOLLOW_SPAN` (one time point, a muscle the motion does not stretch)."""
+    pairs = [(float(r[A.MEAN_END_TO_END_STRAIN]), float(r[A.MEAN_FIBRE_STRAIN])) for r in rows
+             if r.get(A.MEAN_END_TO_END_STRAIN, "") != ""]
+    ends = [e for e, _ in pairs]
+    if not pairs or max(ends) - min(ends) < FOLLOW_SPAN:
+        return math.nan
+    mean_e = sum(ends) / len(ends)
+    mean_f = sum(f for _, f in pairs) / len(pairs)
+    return (sum((e - mean_e) * (f - mean_f) for e, f in pairs)
+            / sum((e - mean_e) ** 2 for e in ends))
+
+
+def rest_arc_chord(block) -> float:
+    """One solved muscle block: the largest arc length over chord of its fibres at rest (the
+    polylines through its particles' rest positions in fibre order)."""
+    rest = V.point_array(block, A.REST_POSITION).reshape(-1, 3)
+    fibre = V.point_array(block, A.FIBRE_ID).ravel().astype(np.int64)
+    order = np.lexsort((V.point_array(block, A.FIBRE_INDEX).ravel(), fibre))
+    points, fibre = rest[order], fibre[order]
+    starts = np.flatnonzero(np.r_[True, fibre[1:] != fibre[:-1]])
+    ends = np.r_[starts[1:] - 1, len(fibre) - 1]
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    inside = fibre[1:] == fibre[:-1]
+    arc = np.bincount(np.searchsorted(starts, np.arange(1, len(fibre)), side="right")[inside] - 1,
+                      steps[inside], minlength=len(starts))
+    chord = np.linalg.norm(points[ends] - points[starts], axis=1)
+    return float(np.max(arc / chord))
+
+
+def later_slope(displacement: np.ndarray, window=SLOPE_WINDOW) -> np.ndarray:
+    """(M,) the least-squares slope of log10(displacement) against the iteration over the
+    ``window`` fractions of the iterations, per column of ``displacement`` (K, M) mm; NaN for a
+    muscle that stopped moving (a zero in the window)."""
+    k = len(displacement)
+    first, last = int(window[0] * k), max(int(window[1] * k), int(window[0] * k) + 2)
+    rows = np.arange(first, min(last, k))
+    values = displacement[rows]
+    slopes = np.full(displacement.shape[1], np.nan)
+    if len(rows) < 2:
+        return slopes
+    moving = (values > 0.0).all(axis=0)
+    if moving.any():
+        slopes[moving] = np.polyfit(rows + 1.0, np.log10(values[:, moving]), 1)[0]
+    return slopes
+
+
+def machine() -> str:
+    """The machine, for the report's tables."""
+    import os
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"{platform.system()} {platform.release()}, Python {platform.python_version()}, "
+            f"numpy {np.__version__}")
+
+
+def _displacements(convergence: dict, muscles) -> np.ndarray:
+    return np.column_stack([np.asarray(convergence[A.MEAN_DISPLACEMENT + m], dtype=np.float64)
+                            for m in muscles])
+
+
+def _particles(particles) -> np.ndarray:
+    return np.concatenate([V.points_of(block) for _, block in V.blocks(particles)])
+
+
+def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
+    """The pipeline and the paper relaxation's solve of time point ``index`` with ``layout``
+    at the solver's TimeStep, or at half or a quarter of it where a muscle diverges (Delaunay's
+    stiffer springs need 0.025 s): ``(pipeline, result, time step s)``."""
+    for halvings in range(TIME_STEP_HALVINGS + 1):
+        step = DEFAULT_TIME_STEP / 2 ** halvings
+        pipeline = build_pipeline(scene_folder, {
+            "ParticlesPerFibre": resolution, "Layout": layout, "Method": METHOD_RELAXATION,
+            "TimeStep": step})
+        try:
+            return pipeline, solve_time_point(pipeline, index), step
+        except MuscleMSSError:
+            if halvings == TIME_STEP_HALVINGS:
+                raise
+
+
+def layout_result(scene_folder, layout: str, resolution: int, index: int) -> LayoutResult:
+    """Solve the pose ``index`` with ``layout`` by the paper relaxation (its defaults, the
+    TimeStep halved where it diverges) and by the quasi-static method
+    (:data:`LAYOUT_TISSUE`)."""
+    pipeline, paper, time_step = _paper_solve(scene_folder, layout, resolution, index)
+    muscles = [row[A.MUSCLE] for row in paper.rows]
+    displacement = _displacements(paper.convergence, muscles)
+    below = np.flatnonzero((displacement < DEFAULT_DISPLACEMENT_THRESHOLD).all(axis=1))
+    model = pipeline.springs.GetOutputDataObject(0)
+    springs = sum(block.GetNumberOfLines() for _, block in V.blocks(model))
+    particles = _particles(paper.particles)
+    memory = sum(block.GetActualMemorySize() for _, block in V.blocks(model)) / 1024.0
+    pipeline.solver.SetMethod(METHOD_QUASI_STATIC)
+    pipeline.solver.SetConnectiveTissue(LAYOUT_TISSUE)
+    pipeline.solver.SetIterations(LAYOUT_QUASI_STATIC_CAP)
+    tick = wallclock.perf_counter()
+    solved = solve_time_point(pipeline, index)
+    seconds = wallclock.perf_counter() - tick
+    converged = bool(solved.rows[0][A.CONVERGED])
+    return LayoutResult(
+        layout, displacement, later_slope(displacement),
+        int(below[0]) + 1 if len(below) else 0, float(paper.convergence[A.SECONDS][-1]),
+        (int(solved.rows[0][A.ITERATIONS]), seconds, converged),
+        2.0 * springs / max(len(particles), 1), memory,
+        np.array([row[A.VOLUME_ERROR_PCT] for row in paper.rows]), particles, time_step)
+
+
+def motion_series(scene_folder, resolution: int, progress=None) -> MotionSeries:
+    """Every time point of the scene's motion through the six filters at their defaults (the
+    default layout) and ``resolution`` particles per fibre; ``progress(done, total)``."""
+    pipeline = build_pipeline(scene_folder, {"ParticlesPerFibre": resolution,
+                                             "Layout": DEFAULT_LAYOUT})
+    times, fibres, paths, volume, phases, rows = [], [], [], [], [], []
+    muscles = None
+    for k in range(len(pipeline.times)):
+        result = solve_time_point(pipeline, k)
+        muscles = [row[A.MUSCLE] for row in result.rows]
+        stats = dict((name, fibre_statistics(block))
+                     for name, block in V.blocks(result.fibres, "deformed fibres"))
+        fibres.append([stats[m] for m in muscles])
+        blocks = dict(V.blocks(result.particles, "solved model"))
+        if k == 0:
+            rest = np.array([rest_arc_chord(blocks[m]) for m in muscles])
+        paths.append([path_lengths(blocks[m]) for m in muscles])
+        volume.append([row[A.VOLUME_ERROR_PCT] for row in result.rows])
+        table = pipeline.solver.GetOutputDataObject(1)
+        phases.append([float(V.field(table, A.PHASE_SECONDS[p], 0.0)) for p in PHASES])
+        times.append(result.time)
+        rows += result.rows
+        if progress is not None:
+            progress(k + 1, len(pipeline.times))
+    fibres = np.asarray(fibres, dtype=np.float64)          # (T, M, 5)
+    paths = np.asarray(paths, dtype=np.float64)            # (T, M, 2)
+    return MotionSeries(np.asarray(times), muscles, fibres[:, :, :3], paths[:, :, 0],
+                        paths[:, :, 0] / paths[:, :, 1] - 1.0, fibres[:, :, 3], rest,
+                        fibres[:, :, 4].astype(np.int64), np.asarray(volume, dtype=np.float64),
+                        np.asarray(phases), rows)
+
+
+def run_study(scene_folder, resolution: int, index: int | None = None,
+              progress=None) -> Study:
+    """The whole study of the scene in ``scene_folder`` at ``resolution`` particles per fibre,
+    its layouts at time point ``index`` (default the most flexed: the bones farthest from rest).
+    ``progress(label, done, total)`` after each step."""
+    from muscle_mss.core.motion import farthest_pose_index
+    from .scene_io import load_scene
+    start = wallclock.perf_counter()
+    scene = load_scene(scene_folder)
+    index = farthest_pose_index(scene.motion) if index is None else index
+    say = progress or (lambda label, done, total: None)
+    series = motion_series(scene_folder, resolution,
+                           lambda done, total: say("motion", done, total))
+    layouts = []
+    for k, layout in enumerate(LAYOUTS):
+        layouts.append(layout_result(scene_folder, layout, resolution, index))
+        say("layouts", k + 1, len(LAYOUTS))
+    return Study(str(scene_folder), index, float(series.times[index]), resolution, layouts,
+                 series, machine(), wallclock.perf_counter() - start)
