@@ -71,8 +71,8 @@ def test_the_studys_tables_agree_with_a_runs_summary(study_out, small_scene_dir,
 
 def test_fibres_and_paths_keep_their_rest_length_when_the_bones_do_not_move(
         small_scene, tmp_path):
-    """Every bone at rest at every time point: the origin-insertion path is the rest one and
-    the fibres' strain stays 0 within the solver's rounding."""
+    """Every bone at rest at every time point: the origin-insertion path is the rest one, the
+    fibres' strain stays 0 (within rounding) and their tortuosity is the rest one."""
     from muscle_mss.filters.scene_io import write_scene
     from muscle_mss.filters.study import motion_series
     motion = small_scene.motion
@@ -84,10 +84,10 @@ def test_fibres_and_paths_keep_their_rest_length_when_the_bones_do_not_move(
     series = motion_series(tmp_path / "still", 20)
     assert np.abs(series.path_strain).max() < 1e-12
     assert np.ptp(series.path_length, axis=0).max() < 1e-9
-    assert np.abs(series.fibre_strain).max() < 1e-3
+    assert np.abs(series.fibre_strain).max() < 1e-12      # nothing moves a resting model
     assert (series.buckled == 0).all() and series.arc_chord.max() < 1.1
     np.testing.assert_allclose(series.arc_chord, series.rest_arc_chord[None].repeat(3, 0),
-                               atol=2e-3)      # the rest tortuosity, from the rest positions
+                               atol=1e-12)     # the rest tortuosity, from the rest positions
 
 
 def test_a_zigzag_fibre_is_flagged_and_a_straight_one_is_not():
