@@ -32,7 +32,8 @@ from muscle_mss.core import solver as S
 from muscle_mss.core.demo_arm import demo_arm_scene, flexion_angles
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.model import prepare
-from muscle_mss.core.settings import DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, SolverSettings
+from muscle_mss.core.settings import (DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
+                                      METHOD_QUASI_STATIC, SolverSettings)
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
 from muscle_mss.filters.collision_solver import MSSCollisionSolver, solid_bones
@@ -186,7 +187,8 @@ def main(args):
         f"Machine: {machine()}. The machine is shared: the load average (1 min) after "
         "each row is given."]
     table1_lines = [
-        "", f"Table 1: ConnectiveTissue {args.ratio:g}, Tolerance {DEFAULT_TOLERANCE} mm, cap "
+        "", f"Table 1: ConnectiveTissue {args.ratio:g} (TissueAlongFibres "
+        f"{DEFAULT_TISSUE_ALONG:g}), Tolerance {DEFAULT_TOLERANCE} mm, cap "
         f"{args.cap} iterations, bones as solids. Tighter: Tolerance "
         f"{DEFAULT_TOLERANCE / 10} mm, cap {3 * args.cap}. No tissue: the same solve at "
         "ConnectiveTissue 0. Paper: the paper relaxation, 500 iterations, no tissue. "

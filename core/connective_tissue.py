@@ -14,11 +14,25 @@ fibre: a fibre's springs act in series, so its stretching and bending stiffness 
 ``1 / (N - 1)`` while the tissue along it grows as ``N - 1``; the square keeps their balance,
 and so the shape, the same at every resolution (the ratio is the one at
 :data:`REFERENCE_PARTICLES` particles per fibre). ``ratio = 0`` is the paper's model.
+
+Weaker along the fibres (``along`` < 1, the fraction of the stiffness across that acts along the
+particle's posed fibre direction ``f_i``)::
+
+    E_tissue = sum_i k_i (|d_i|^2 - (1 - along) (d_i . f_i)^2) / 2,     d_i = x_i - t_i
+
+so that a fibre lengthens and shortens, and a muscle slides along its neighbours, against a
+tissue ``along`` times as stiff as the one holding it sideways. The kernels take it as
+*targets* (6, n): rows 0-2 ``t_i``, rows 3-5 ``g_i = sqrt(1 - along) f_i`` (energy
+``k_i (|d|^2 - (d . g)^2) / 2``); (3, n) targets, ``along = 1``, are the isotropic tissue,
+computed exactly as before it could be anisotropic.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
+
+from .errors import MuscleMSSError
+from .mss import along_part
 
 REFERENCE_PARTICLES = 20
 """Particles per fibre at which ``k_i`` is ``ratio`` times the spring stiffness."""
@@ -50,29 +64,54 @@ def tissue_stiffness(model, order, fixed, ratio: float) -> np.ndarray:
     return stiffness
 
 
+def check_along(along: float) -> None:
+    """Raise :class:`MuscleMSSError` unless the along-fibre fraction is in [0, 1]."""
+    if not 0.0 <= along <= 1.0:
+        raise MuscleMSSError(f"solver tissue along fibres is {along}; it must be a fraction of "
+                             "the tissue's stiffness across the fibres, from 0 to 1")
+
+
+def tissue_targets(model, order, posed, along: float) -> np.ndarray:
+    """The kernels' targets (module docstring): ``posed`` (3, n) mm, the posed particles in the
+    solver's ``order``, as they are for ``along`` 1; else stacked on ``sqrt(1 - along)`` times
+    each particle's fibre direction at the posed positions (6, n)."""
+    posed = np.ascontiguousarray(posed, dtype=np.float64)
+    if along >= 1.0:
+        return posed
+    from .fibre_shortening import fibre_tangents
+    direction = fibre_tangents(model, model.positions)[order].T
+    return np.ascontiguousarray(np.vstack([posed, np.sqrt(1.0 - along) * direction]))
+
+
 @njit(cache=True, parallel=True)
 def add_tissue_energy(x, target, stiffness, offsets, gradient, energy):
     """Add the tissue's energy of every muscle to ``energy`` (M,) and its gradient
-    ``k_i (x_i - t_i)`` to ``gradient`` (3, n), at ``x`` (3, n) mm with targets ``target``
-    (3, n) mm and stiffness ``stiffness`` (n,) g/s^2."""
+    ``k_i (d_i - (d_i . g_i) g_i)`` (``k_i d_i`` isotropic) to ``gradient`` (3, n), at ``x``
+    (3, n) mm with ``target`` (3 or 6, n) and stiffness ``stiffness`` (n,) g/s^2."""
+    anisotropic = target.shape[0] == 6
     for m in prange(offsets.shape[0] - 1):
         e = 0.0
         for p in range(offsets[m], offsets[m + 1]):
             k = stiffness[p]
             if k == 0.0:
                 continue
+            dot = along_part(x, target, p)
             for axis in range(3):
                 d = x[axis, p] - target[axis, p]
-                gradient[axis, p] += k * d
                 e += 0.5 * k * d * d
+                if anisotropic:
+                    d -= dot * target[3 + axis, p]
+                gradient[axis, p] += k * d
+            if anisotropic:
+                e -= 0.5 * k * dot * dot
         energy[m] += e
 
 
-def tissue_share(model, positions, ratio: float) -> np.ndarray:
-    """(M,) %: per muscle, the tissue's force ``sum_i k_i |x_i - t_i|`` over the springs'
-    ``sum_s k_s |l_s - l0_s|`` at the solved ``positions`` (n, 3) mm (input order), targets
-    the model's posed positions; how much of the load the tissue carries. 0 where ``ratio`` is
-    0 or nothing pulls, ``inf`` where only the tissue does."""
+def tissue_share(model, positions, ratio: float, along: float) -> np.ndarray:
+    """(M,) %: per muscle, the tissue's force ``sum_i |f_i|`` (``k_i |x_i - t_i|`` isotropic)
+    over the springs' ``sum_s k_s |l_s - l0_s|`` at the solved ``positions`` (n, 3) mm (input
+    order), targets the model's posed positions; how much of the load the tissue carries. 0
+    where ``ratio`` is 0 or nothing pulls, ``inf`` where only the tissue does."""
     offsets = np.asarray(model.offsets, dtype=np.int64)
     m_count = len(offsets) - 1
     if ratio == 0.0:
@@ -82,7 +121,12 @@ def tissue_share(model, positions, ratio: float) -> np.ndarray:
     target = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)
     k = tissue_stiffness(model, np.arange(n), model.fixed, ratio)
     muscle = np.repeat(np.arange(m_count), np.diff(offsets))
-    tissue = np.bincount(muscle, k * np.linalg.norm(x - target, axis=1), minlength=m_count)
+    d = x - target
+    if along < 1.0:
+        from .fibre_shortening import fibre_tangents
+        g = np.sqrt(1.0 - along) * fibre_tangents(model, target)
+        d = d - np.einsum("ij,ij->i", d, g)[:, None] * g
+    tissue = np.bincount(muscle, k * np.linalg.norm(d, axis=1), minlength=m_count)
     springs = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
     length = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
     tension = np.abs(np.asarray(model.stiffness, dtype=np.float64)

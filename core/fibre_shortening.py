@@ -59,11 +59,13 @@ def shortening_factors(model: MSSModel) -> np.ndarray:
     return per_particle
 
 
-def fibre_tangents(model: MSSModel) -> np.ndarray:
-    """(n, 3) unit vectors: each particle's fibre direction at rest (from its predecessor to its
-    successor along the fibre; at the ends, the end segment)."""
+def fibre_tangents(model: MSSModel, positions=None) -> np.ndarray:
+    """(n, 3) unit vectors: each particle's fibre direction at ``positions`` (n, 3) mm (default
+    the rest positions): from its predecessor to its successor along the fibre; at the ends,
+    the end segment."""
     order, starts, ends = fibre_order(model)
-    rest = np.asarray(model.rest_positions, dtype=np.float64).reshape(-1, 3)
+    rest = np.asarray(model.rest_positions if positions is None else positions,
+                      dtype=np.float64).reshape(-1, 3)
     following, preceding = np.empty(len(order), np.int64), np.empty(len(order), np.int64)
     following[order] = np.append(order[1:], order[-1])
     preceding[order] = np.insert(order[:-1], 0, order[0])

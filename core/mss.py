@@ -171,9 +171,9 @@ they go to parallel loops, which take no nested tuple, and Numba 0.56 lowers no 
 ``scratch`` (3, n) work arrays; ``inv_mass`` (n,) 1/g, 0 for fixed particles (so they never
 move); ``dt`` s; ``drag`` 1/s and ``bulk_modulus`` g/(mm s^2) as in :func:`mss_steps`;
 ``cage_ptr``, ``cage_triangles``, ``rest_volume`` the :class:`VolumeCages`; ``offsets`` (M+1,)
-the muscles' particle ranges; ``tissue`` (n,) g/s^2 and ``target`` (3, n) mm the connective
-tissue's stiffness and targets (:mod:`muscle_mss.core.connective_tissue`), both empty (length
-0) for none."""
+the muscles' particle ranges; ``tissue`` (n,) g/s^2 and ``target`` (3 or 6, n) mm the
+connective tissue's stiffness and targets (:mod:`muscle_mss.core.connective_tissue`), both empty
+(length 0) for none."""
 
 
 def mss_state(x, v, work, inv_mass, dt, drag, bulk_modulus, cages: VolumeCages,
@@ -374,13 +374,33 @@ def _implicit_volume_forces(m, state):
             force[axis, p] -= correction * gradient[axis, p]
 
 
+@njit(cache=True, inline="always")
+def along_part(x, target, p):
+    """``d . g`` of particle ``p`` (:mod:`~muscle_mss.core.connective_tissue`): the part of its
+    displacement from its target along its fibre, times ``sqrt(1 - along)``; 0 for (3, n)
+    targets."""
+    dot = 0.0
+    if target.shape[0] == 6:
+        for axis in range(3):
+            dot += (x[axis, p] - target[axis, p]) * target[3 + axis, p]
+    return dot
+
+
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def _tissue_forces(m, state):
-    """Add the connective tissue's pull ``-k_i (x_i - t_i)`` on the particles of muscle ``m``
+    """Add the connective tissue's pull ``-k_i (x_i - t_i)`` (weaker along the fibres for
+    (6, n) targets, :mod:`~muscle_mss.core.connective_tissue`) on the particles of muscle ``m``
     to ``state.force`` (none when ``state.tissue`` is empty)."""
     if state.tissue.shape[0] == 0:
         return
     x, force, tissue, target = state.x, state.force, state.tissue, state.target
+    if target.shape[0] == 6:
+        for p in range(state.offsets[m], state.offsets[m + 1]):
+            dot = along_part(x, target, p)
+            for axis in range(3):
+                force[axis, p] -= tissue[p] * (x[axis, p] - target[axis, p]
+                                               - dot * target[3 + axis, p])
+        return
     for axis in range(3):
         for p in range(state.offsets[m], state.offsets[m + 1]):
             force[axis, p] -= tissue[p] * (x[axis, p] - target[axis, p])

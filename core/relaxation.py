@@ -58,7 +58,7 @@ from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_sph
 from .errors import MuscleMSSError
 from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
                     stability_problem)
-from .connective_tissue import tissue_stiffness
+from .connective_tissue import check_along, tissue_stiffness, tissue_targets
 from .mss import mss_state, muscle_step
 from .settings import (STRUCTURE_HASH, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
                        TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
@@ -244,6 +244,7 @@ def check_settings(settings: SolverSettings) -> None:
                         ("connective tissue", settings.connective_tissue)):
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
+    check_along(settings.tissue_along)
 
 
 def _divergence_limits(positions, offsets, reach) -> np.ndarray:
@@ -289,7 +290,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     v = np.zeros_like(x)
     relaxation = settings.relaxation
     tissue = ((tissue_stiffness(model, prep.order, prep.fixed, settings.connective_tissue),
-               np.ascontiguousarray(posed.T)) if settings.connective_tissue > 0.0 else ())
+               tissue_targets(model, prep.order, posed.T, settings.tissue_along))
+              if settings.connective_tissue > 0.0 else ())
     mss = mss_state(x, v, np.zeros((3, 3, n)), prep.inv_mass, relaxation.time_step,
                     relaxation.drag, settings.bulk_modulus, prep.cages, offsets, *tissue)
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)

@@ -44,5 +44,6 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     else:
         raise MuscleMSSError(f"solver method {settings.method!r} is not one of "
                              f"{', '.join(METHODS)}")
-    result.tissue_share = tissue_share(model, result.positions, settings.connective_tissue)
+    result.tissue_share = tissue_share(model, result.positions, settings.connective_tissue,
+                                       settings.tissue_along)
     return result

@@ -67,10 +67,10 @@ from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.exact_bone_distance import particles_out_of_bones
 from muscle_mss.core.fibre_shortening import shortened_rest_lengths
 from muscle_mss.core.settings import (
-    DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE, DEFAULT_BVH_MIN_PRIMITIVES,
-    DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS, DEFAULT_METHOD,
-    DEFAULT_PENETRATION_TOLERANCE, DEFAULT_PROJECTION_PASSES, DEFAULT_TIME_BUDGET,
-    DEFAULT_TIME_STEP, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, METHODS, STRUCTURE_HASH,
+    DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE,
+    DEFAULT_BVH_MIN_PRIMITIVES, DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS,
+    DEFAULT_METHOD, DEFAULT_PENETRATION_TOLERANCE, DEFAULT_PROJECTION_PASSES, DEFAULT_TIME_BUDGET,
+    DEFAULT_TIME_STEP, DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, METHODS, STRUCTURE_HASH,
     STRUCTURES, TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS, ContactSettings,
     QuasiStaticSettings, RelaxationSettings, SolverSettings)
 
@@ -191,6 +191,14 @@ class MSSCollisionSolver(MuscleFilter):
                  "the shape does not depend on the iteration cap. Both methods; 0 is the "
                  "paper's model (muscles free between their tendons).",
                  minimum=0.0, group="Integration"),
+        Property("TissueAlongFibres", "double", DEFAULT_TISSUE_ALONG,
+                 "The connective tissue's stiffness along each particle's fibre (its direction "
+                 "at the posed particles) as a fraction of its stiffness across: below 1 a "
+                 "fibre lengthens and shortens, and a muscle slides along its neighbours, "
+                 "against a weaker tissue (energy k (|d|^2 - (1 - fraction) (d . f)^2) / 2, d "
+                 "the particle's displacement from its posed position, f its fibre direction). "
+                 "1: the same in every direction.",
+                 minimum=0.0, maximum=1.0, group="Integration"),
         Property("FibreShortening", "bool", False,
                  "Fibres that shorten with their muscle: when a fibre's ends come closer than "
                  "at rest (by the factor s), the springs' rest lengths along it follow (times "
@@ -265,6 +273,7 @@ class MSSCollisionSolver(MuscleFilter):
             iterations=self.value("Iterations"), time_budget=self.value("TimeBudget"),
             bulk_modulus=self.value("BulkModulus"),
             connective_tissue=self.value("ConnectiveTissue"),
+            tissue_along=self.value("TissueAlongFibres"),
             contacts=ContactSettings(
                 structure=self.choice("CollisionStructure"),
                 bvh_max_depth=self.value("BVHMaxDepth"),

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_ITERATIONS,
-                                      DEFAULT_METHOD, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC,
-                                      METHOD_RELAXATION, METHODS)
+                                      DEFAULT_METHOD, DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS)
 
 from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
 from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
@@ -30,7 +30,7 @@ def method_option(method: str) -> str:
 def add_run_options(p) -> None:
     """The options that set up a run (``argparse`` parser ``p``): what the filters compute
     (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``,
-    ``--connective-tissue``, ``--fibre-shortening``) and what is
+    ``--connective-tissue``, ``--tissue-along``, ``--fibre-shortening``) and what is
     written, and how (``--write``, ``--compressor``)."""
     p.add_argument("--resolution", type=int,
                    help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
@@ -53,6 +53,9 @@ def add_run_options(p) -> None:
                    help="connective tissue holding each free particle toward its posed position, "
                         "as a ratio to the springs' stiffness; 0: the paper's model "
                         f"(default {DEFAULT_CONNECTIVE_TISSUE:g})")
+    p.add_argument("--tissue-along", type=float,
+                   help="the connective tissue's stiffness along the fibres as a fraction of "
+                        f"that across, 0 to 1 (default {DEFAULT_TISSUE_ALONG:g}: isotropic)")
     p.add_argument("--fibre-shortening", action="store_true", default=None,
                    help="fibres shorten with their muscle instead of folding (the solver's "
                         "FibreShortening; default off)")
@@ -71,6 +74,7 @@ def settings_from(args) -> dict:
     pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
              ("Iterations", args.iterations), ("Method", METHOD_OPTIONS.get(args.method)),
              ("Tolerance", args.tolerance), ("ConnectiveTissue", args.connective_tissue),
+             ("TissueAlongFibres", args.tissue_along),
              ("FibreShortening", args.fibre_shortening))
     return {name: value for name, value in pairs if value is not None}
 

@@ -43,7 +43,7 @@ def parse_args(argv):
 
 
 STUDY_IGNORES = ("layout", "iterations", "method", "tolerance", "connective_tissue",
-                 "fibre_shortening", "write")
+                 "tissue_along", "fibre_shortening", "write")
 """Run options a study does not take (it runs every layout, the filters' defaults)."""
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..bone_distance import BoneSolids, push_out_of_bones
+from ..connective_tissue import check_along, tissue_targets
 from ..contacts import (Contacts, bvh_state, collision_spheres, final_passes, hash_state,
                         solved_state, world_box)
 from ..errors import MuscleMSSError
@@ -84,6 +85,7 @@ def check_settings(settings: SolverSettings) -> None:
                         ("connective tissue", settings.connective_tissue)):
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
+    check_along(settings.tissue_along)
     weight = settings.quasi_static.contact_weight
     if not (weight > 0.0 and np.isfinite(weight)):
         raise MuscleMSSError(f"solver contact weight is {weight}; it must be "
@@ -141,7 +143,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
                               float(settings.quasi_static.contact_weight) * pre.stiffest,
-                              bone_solids, np.ascontiguousarray(posed.T))
+                              bone_solids, tissue_targets(model, prep.order, posed.T,
+                                                          settings.tissue_along))
     outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
     x[:, pre.free] = outcome.position.T
     return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, outcome)

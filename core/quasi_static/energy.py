@@ -213,7 +213,7 @@ class ContactEnergy:
                  solids=None, target=None):
         self.prep, self.pre, self.weight = prep, pre, weight
         self.x = x                                  # (3, n) mm, fixed particles posed
-        # the connective tissue's targets (3, n) mm, the posed particles (None: no tissue)
+        # the connective tissue's targets (3 or 6, n): the posed particles (None: no tissue)
         self.target = target if pre.tissue.any() else None
         self.free = pre.free
         n = x.shape[1]
