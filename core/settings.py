@@ -53,11 +53,12 @@ DEFAULT_CONNECTIVE_TISSUE = 0.0
 # The tissue's stiffness along each particle's fibre as a fraction of it across (1: isotropic):
 # below 1 a fibre lengthens and shortens, and a muscle slides along its neighbours, against a
 # weaker tissue (core/connective_tissue.py). Measured with ConnectiveTissue 0.1, the quasi-static
-# method and FibreShortening over both demo motions (docs/accuracy.md): 0.1 against 1 converged
-# in fewer iterations (elbow median 410 / 479, thigh 377 / 447), its flexors' fibres followed
-# their ends more (slope 0.75-0.86 / 0.57-0.67), the largest volume error fell (3.26 / 4.40 %,
-# thigh 5.06 / 5.56 %); 0.03 followed a little more (0.78-0.90) in more iterations (458).
-DEFAULT_TISSUE_ALONG = 0.1
+# method and FibreShortening over both demo motions (docs/accuracy.md), 0.1 beats 1 in every
+# column (elbow median iterations 410 / 479, flexors' follow slope 0.75-0.86 / 0.57-0.67, largest
+# volume error 3.26 / 4.40 %); but without FibreShortening the elbow at 130 degrees then ends
+# with a sphere wedged 3.4 mm deep that the final collision passes cannot free (not converged;
+# isotropic: converged), so the default stays isotropic until that is understood.
+DEFAULT_TISSUE_ALONG = 1.0
 # The final collision passes (:func:`muscle_mss.core.contacts.project`): a sphere pressed
 # between two objects keeps half its overlap per pass (two passes halve it), so 100 passes leave
 # any overlap below 1e-15 of itself; they stop as soon as the deepest penetration is below the
