@@ -4,7 +4,7 @@ The full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations) and the
 (7 muscles, 4 bones) are run through the CLI's pipeline (:mod:`muscle_mss.filters.motion_run`)
 at N = 20 and 80 particles per fibre. For each time point the pipeline is updated stage by stage
 and each stage timed: pose (Rigid Pose Transform), solver setup (the MSS Collision Solver's
-update less its iterations), iterations (the solver's iteration chunks), MVC (MVC Surface
+update less its iterations), iterations (the solver's iteration loop), MVC (MVC Surface
 Deformer), statistics (Volume-Error Probe and the runner's summary rows: penetration, strain)
 and writing (the three series, appended raw LZ4, and the convergence table). The first time
 point (MVC weights, kernel loads, bone sphere sampling) is listed apart from the steady state
@@ -40,12 +40,12 @@ from bench_solver import machine
 PARTS = ("pose", "solver setup", "iterations", "MVC", "statistics", "writing")
 
 
-class ChunkClock:
-    """Seconds spent in the solver's iteration chunks (wraps ``relaxation._solve_chunk``)."""
+class IterationClock:
+    """Seconds spent in the solver's iteration loop (wraps ``relaxation._iterate``)."""
 
     def __init__(self):
         self.seconds = 0.0
-        self.inner = relaxation._solve_chunk
+        self.inner = relaxation._iterate
 
     def __call__(self, *args):
         start = time.perf_counter()
@@ -150,8 +150,8 @@ def spread(count, points) -> list:
 
 def main(argv=None):
     args = sizes_and_points(argv, __doc__.splitlines()[0])
-    clock = ChunkClock()
-    relaxation._solve_chunk = clock
+    clock = IterationClock()
+    relaxation._iterate = clock
     table, replaced = [], []
     with tempfile.TemporaryDirectory() as folder:
         for region in args.scenes:

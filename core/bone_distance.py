@@ -439,7 +439,7 @@ def push_out_of_bones(fields: BoneFieldSet, points, radii=None, transforms=None,
     points = checked_points(points)
     n, b = len(points), len(fields)
     radii = np.zeros(n) if radii is None else \
-        np.ascontiguousarray(np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)))
+        np.array(np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)))
     if not np.isfinite(radii).all() or (radii < 0).any():
         raise MuscleMSSError("push out of bones: radii must be finite and 0 or more (mm)")
     transforms = _checked_transforms(fields, transforms)

@@ -192,10 +192,11 @@ def _bvh_contacts(spheres, bvh, options, use_solids):
     no_pairs = np.zeros((0, 2), dtype=np.int64)
     n_pairs = np.zeros(1, dtype=np.int64)
     if options.muscle_muscle:
-        mm_count, deepest = octree_bvh.bvh_pass(False, bvh, disp, collided, no_pairs, n_pairs)
+        mm_count, deepest = octree_bvh.bvh_pass(np.bool_(False), bvh, disp, collided, no_pairs,
+                                                n_pairs)
     t2 = now()
     if options.muscle_bone and not use_solids:
-        mb_count, pen = octree_bvh.bvh_pass(True, bvh, disp, collided, no_pairs, n_pairs)
+        mb_count, pen = octree_bvh.bvh_pass(np.bool_(True), bvh, disp, collided, no_pairs, n_pairs)
         deepest = max(deepest, pen)
     return mm_count, mb_count, deepest, t2 - t1
 
@@ -207,23 +208,22 @@ def _bone_list_contacts(spheres, hashed, table, lists):
     spheres tested again when one outgrew its room. Returns the lists."""
     room, mb_idx = lists.room, lists.mb_idx
     found = spatial_hash.own_list_contacts(spheres, hashed, table, lists.mb_begin,
-                                           lists.mb_end, mb_idx, room, False)
+                                           lists.mb_end, mb_idx, room, np.bool_(False))
     if found > room:
         # the spheres tested keep their counts; the pending ones get theirs now
         room = 2 * found
         mb_idx = np.empty(spheres.particle.shape[0] * room, dtype=np.int64)
         hashed.mb_built[:, :] = np.inf
         spatial_hash.own_list_contacts(spheres, hashed, table, lists.mb_begin, lists.mb_end,
-                                       mb_idx, room, True)
+                                       mb_idx, room, np.bool_(True))
     return CandidateLists(lists.muscle, lists.mb_begin, lists.mb_end, mb_idx, room)
 
 
 def used_structures(contacts, options):
     """``(bvh, bone_table)`` for :func:`collide`: ``contacts.bvh`` when the run finds its pairs
     through the octree BVH, ``contacts.bone_table`` when the muscle spheres meet the bones as
-    sphere sets through the spatial hash, None for what the run does not use. Numba prunes a
-    branch on an argument that is None before it compiles, so a run compiles (and loads) no
-    code of a structure it does not use."""
+    sphere sets through the spatial hash, None for what the run does not use: :func:`collide`
+    then calls no kernel of that structure, so a run compiles (and loads) none of them."""
     use_solids = contacts.solids.transforms.shape[0] > 0
     bvh = contacts.bvh if options.use_bvh else None
     bone_table = (contacts.bone_table if not options.use_bvh and options.muscle_bone
@@ -231,7 +231,6 @@ def used_structures(contacts, options):
     return bvh, bone_table
 
 
-@njit(cache=True)
 def collide(contacts, options, lists, bvh, bone_table):
     """Collision detection at the gathered sphere centres: each collided sphere's displacement
     by the paper's response into ``spheres.disp``, ``spheres.collided`` set (both cleared by
@@ -241,10 +240,11 @@ def collide(contacts, options, lists, bvh, bone_table):
     of muscle CD, seconds of bone CD, spheres whose lists were refreshed, lists)``; keep the
     returned :class:`CandidateLists` (grown when they outgrow their room). ``contacts`` a
     :class:`Contacts`, ``options`` :class:`ContactOptions`, ``bvh`` and ``bone_table`` from
-    :func:`used_structures`."""
+    :func:`used_structures`. Python around the kernels, called once an iteration: compiled,
+    it compiled its kernels a second time (issue 27)."""
     spheres, hashed, solids = contacts.spheres, contacts.hashed, contacts.solids
     use_solids = solids.transforms.shape[0] > 0
-    t1 = now()
+    t1 = time.perf_counter()
     mm_count, mb_count, deepest, refreshed = 0, 0, 0.0, 0
     if bvh is not None:
         mm_count, mb_count, deepest, mm_seconds = _bvh_contacts(spheres, bvh, options,
@@ -259,7 +259,7 @@ def collide(contacts, options, lists, bvh, bone_table):
                 spheres.pair_count, spheres.pair_pen)
             mm_count, deepest = tally(spheres.pair_count, spheres.pair_pen)
         lists = CandidateLists(muscle, lists.mb_begin, lists.mb_end, lists.mb_idx, lists.room)
-        t2 = now()
+        t2 = time.perf_counter()
         if bone_table is not None:
             lists = _bone_list_contacts(spheres, hashed, bone_table, lists)
             mb_count, pen = tally(spheres.pair_count, spheres.pair_pen)
@@ -268,7 +268,7 @@ def collide(contacts, options, lists, bvh, bone_table):
         # tested in the relaxation's step or in solid_contacts (final passes)
         mb_count, pen = tally(solids.count, solids.pen)
         deepest = max(deepest, pen)
-    t3 = now()
+    t3 = time.perf_counter()
     return mm_count, mb_count, deepest, t2 - t1, t3 - t2, refreshed, lists
 
 
@@ -301,7 +301,6 @@ def _respond_all(x, v, particle, disp, collided, ever_collided):
             respond_sphere(s, x, v, particle, disp)
 
 
-@njit(cache=True)
 def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, solid_ever, box,
             bvh, bone_table):
     """Collision passes without the MSS step (:func:`collide` and the response) until no pair
@@ -320,7 +319,8 @@ def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, so
     the solid-contact particles that met a solid bone (``box`` (2, 3) mm: the world box, as
     for :func:`~muscle_mss.core.solid_contacts.solid_contacts`). Returns ``(passes run,
     deepest penetration left mm, lists)``: the deepest left is that found by the last pass
-    before its response, 0 when nothing collided."""
+    before its response, 0 when nothing collided. A Python loop around the kernels: passes are
+    few, and a compiled loop compiled :func:`collide` a second time (issue 27)."""
     spheres, solids = contacts.spheres, contacts.solids
     solids.margin[:] = -np.inf     # every particle tested afresh by the first pass
     done = 0
@@ -337,9 +337,10 @@ def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, so
         _respond_all(x, v, spheres.particle, spheres.disp, spheres.collided, ever_collided)
         if options.muscle_bone:
             respond_solids(x, v, solids, solid_ever)
+        # measured before the test below, so that the warm-up's passes compile it too
+        push = _push_total(spheres, solids, options.muscle_bone)
         if deepest <= tolerance:
             break
-        push = _push_total(spheres, solids, options.muscle_bone)
         if push < PROGRESS * best:
             best = push
             since_best = 0
@@ -368,9 +369,9 @@ def world_box(positions, bone_centres) -> np.ndarray:
     posed particles and the bone spheres grown by its own diagonal on every side. A sphere
     outside it has diverged (a step of the explicit integration too long for the springs):
     the solve stops before the collision structures index a grid or tree with it."""
-    boxes = [bounding_box(points) for points in (np.asarray(p, dtype=np.float64).reshape(-1, 3)
-                                                 for p in (positions, bone_centres))
-             if len(points)]
+    points = (np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+              for p in (positions, bone_centres))
+    boxes = [bounding_box(part) for part in points if len(part)]
     lower = np.min([low for low, _ in boxes], axis=0) if boxes else np.zeros(3)
     upper = np.max([high for _, high in boxes], axis=0) if boxes else np.zeros(3)
     grow = max(float(np.linalg.norm(upper - lower)), 1.0)

@@ -79,9 +79,10 @@ def use_kernel_cache_dir() -> str:
 
 
 COMPILE_SECONDS = 150.0
-"""Seconds a cold compile of every kernel took on the shared 2-core development machine (120 s
-with numba 0.68, 180 s with numba 0.56, load average 2-3; README "The first run"): the
-notice's estimate until this machine has measured its own (:func:`compile_estimate`)."""
+"""Seconds a cold compile of every kernel took on the shared 2-core development machine (the
+warm-up's wall time: 141-153 s with numba 0.68, 145-153 s with numba 0.56, load average 1;
+benchmarks/results/compile.md): the notice's estimate until this machine has measured its own
+(:func:`compile_estimate`)."""
 WARM_PREFIX = "warm-"
 
 

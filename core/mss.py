@@ -437,13 +437,13 @@ def mss_step(state, springs):
     """One semi-implicit Euler step of every muscle of ``state`` (:class:`MSSState`) with the
     springs ``springs`` (:class:`SpringLayout`), in place."""
     for m in prange(state.offsets.shape[0] - 1):
-        muscle_step(m, state, springs)
+        muscle_step(np.int64(m), state, springs)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
 def _forces_all(state, springs):
     for m in prange(state.offsets.shape[0] - 1):
-        _muscle_forces(m, state, springs)
+        _muscle_forces(np.int64(m), state, springs)
 
 
 def _soa(points, n, what):

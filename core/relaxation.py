@@ -39,9 +39,10 @@ and in every iteration the springs push such a sphere back in; on the demo thigh
 flexed pose a third of the mean sphere radius stays overlapped after 500 iterations without
 these passes, under the 0.01 mm default tolerance with them.
 
-The loop runs in Numba kernels of :data:`CHUNK_SECONDS` each; between chunks ``progress(f)`` is
-called and may return True to abort. Every sum has a fixed order: the same inputs give
-bitwise the same result on the same machine, whatever the thread count.
+Each stage of an iteration is one Numba kernel, the loop around them Python; about every
+:data:`PROGRESS_SECONDS` ``progress(f)`` is called and may return True to abort. Every sum has
+a fixed order: the same inputs give bitwise the same result on the same machine, whatever the
+thread count.
 """
 from __future__ import annotations
 
@@ -53,7 +54,7 @@ from numba import njit, prange
 
 from .bone_distance import BoneSolids
 from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_spheres,
-                       contact_options, final_passes, gather_sphere, hash_state, now,
+                       contact_options, final_passes, gather_sphere, hash_state,
                        respond_sphere, solved_state, used_structures, world_box)
 from .errors import MuscleMSSError
 from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
@@ -64,7 +65,8 @@ from .settings import (STRUCTURE_HASH, TERMINATION_BUDGET, TERMINATION_ITERATION
                        TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
 from .solid_contacts import respond_solids, solid_contacts_range, solid_grid, solid_state
 
-CHUNK_SECONDS = 0.1
+PROGRESS_SECONDS = 0.1
+"""How often (s) a solve calls its ``progress``: ParaView's progress bar and abort."""
 
 RUNNING, CONVERGED, OUT_OF_TIME, DIVERGED = range(4)
 
@@ -95,10 +97,10 @@ def _step_and_gather(mss, springs, particle, centres, disp, collided, sphere_ptr
     parallel region takes the GIL) — one parallel region: every region costs a thread wake-up
     (~0.1 ms on a virtual machine), which is a large part of one iteration at N = 80.
     ``escaped[m]`` is set when a sphere centre or a particle tested against the solids of
-    muscle ``m`` lies outside ``box`` or is not finite."""
+    muscle ``m`` lies outside ``box`` or is not finite. Returns the first such muscle, or -1."""
     x, offsets, solid_ptr = mss.x, mss.offsets, solids.ptr
     for m in prange(offsets.shape[0] - 1):
-        muscle_step(m, mss, springs)
+        muscle_step(np.int64(m), mss, springs)
         inside = True
         for s in range(sphere_ptr[m], sphere_ptr[m + 1]):
             gather_sphere(s, x, particle, centres, disp, collided)
@@ -107,6 +109,10 @@ def _step_and_gather(mss, springs, particle, centres, disp, collided, sphere_ptr
         if use_solids:
             inside &= solid_contacts_range(solid_ptr[m], solid_ptr[m + 1], solids, grid, box)
         escaped[m] = not inside
+    for m in range(escaped.shape[0]):
+        if escaped[m]:
+            return m
+    return -1
 
 
 @njit(cache=True, inline="always")
@@ -122,74 +128,10 @@ def _mean_step(x, x_prev, first, last):
 
 
 @njit(cache=True)
-def _first_set(flags):
-    """Index of the first nonzero entry of ``flags``, or -1."""
-    for m in range(flags.shape[0]):
-        if flags[m]:
-            return m
-    return -1
-
-
-@njit(cache=True)
-def _solve_chunk(mss, springs, contacts, options, history, control, first, last, started,
-                 lists, bvh, bone_table):
-    """Iterations ``first`` up to ``last`` (fewer when a termination stops the loop): the MSS
-    step of ``mss`` (:class:`~muscle_mss.core.mss.MSSState`) with ``springs``
-    (:class:`~muscle_mss.core.mss.SpringLayout`), the collisions of ``contacts``
-    (:func:`~muscle_mss.core.contacts.collide`, with ``bvh`` and ``bone_table`` from
-    :func:`~muscle_mss.core.contacts.used_structures`), the response; each iteration's row of
-    ``history`` (:class:`IterationHistory`), stopping as ``control``
-    (:class:`RelaxationControl`) says. Returns ``(status, iterations done, diverged muscle or
-    -1, list refreshes, lists)``."""
-    x, v, x_prev, offsets = mss.x, mss.v, mss.x_prev, mss.offsets
-    spheres, solids = contacts.spheres, contacts.solids
-    scratch = np.zeros(solids.points.shape[0], dtype=np.uint8)
-    mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
-    box = control.box
-    muscle_bone = options.muscle_bone
-    use_solids = solids.transforms.shape[0] > 0
-    escaped = np.zeros(offsets.shape[0] - 1, dtype=np.bool_)
-    status = RUNNING
-    bad = -1
-    rebuilds = 0
-    it = first
-    while it < last and status == RUNNING:
-        t0 = now()
-        _step_and_gather(mss, springs, spheres.particle, spheres.centres, spheres.disp,
-                         spheres.collided, spheres.sphere_ptr, box, escaped, solids,
-                         contacts.grid, muscle_bone and use_solids)
-        t1 = now()
-        bad = _first_set(escaped)
-        if bad >= 0:
-            # a sphere left the world box (or is not finite): stop before any collision
-            # structure indexes its grid or tree with it
-            for m in range(mean_disp.shape[1]):
-                mean_disp[it, m] = _mean_step(x, x_prev, offsets[m], offsets[m + 1])
-            seconds[it] = now() - started
-            status = DIVERGED
-            it += 1
-            break
-        mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = collide(
-            contacts, options, lists, bvh, bone_table)
-        rebuilds += refreshed
-        t3 = now()
-        # the response: apply the displacements, stop the collided particles; each muscle's
-        # mean particle displacement of the iteration, mean |x - x_prev|
-        if muscle_bone:
-            respond_solids(x, v, solids, scratch)
-        _respond_and_measure(x, v, x_prev, offsets, spheres.particle, spheres.disp,
-                             spheres.collided, spheres.sphere_ptr, mean_disp[it])
-        t4 = now()
-        phases[0] += (t1 - t0) + (t4 - t3)
-        phases[1] += mm_seconds
-        phases[2] += mb_seconds
-        muscle_pairs[it] = mm_count
-        bone_pairs[it] = mb_count
-        max_pen[it] = deepest
-        seconds[it] = t4 - started
-        status, bad = _status(mean_disp, seconds, it, control)
-        it += 1
-    return status, it, bad, rebuilds, lists
+def _mean_steps(x, x_prev, offsets, out):
+    """Each muscle's mean particle displacement since ``x_prev`` (mm) into ``out`` (M,)."""
+    for m in range(out.shape[0]):
+        out[m] = _mean_step(x, x_prev, offsets[m], offsets[m + 1])
 
 
 @njit(cache=True)
@@ -269,10 +211,11 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
 
     ``bone_centres`` (b, 3) mm, ``bone_radius`` (b,) mm, ``bone_id`` (b,) int, sorted, from
     :func:`muscle_mss.core.bone_spheres.bone_spheres` on the posed bones (omit for no bones);
-    ``progress(fraction) -> bool`` is called between chunks, True aborts with a
-    :class:`MuscleMSSError`; ``prepared`` from :func:`~muscle_mss.core.model.prepare` for this
-    model's topology; ``bone_solids``: the bones as solids for the muscle-bone contacts, of the
-    iterations and the final passes (then give no bone spheres: they would be ignored).
+    ``progress(fraction) -> bool`` is called about every :data:`PROGRESS_SECONDS`, True aborts
+    with a :class:`MuscleMSSError`; ``prepared`` from
+    :func:`~muscle_mss.core.model.prepare` for this model's topology; ``bone_solids``: the
+    bones as solids for the muscle-bone contacts, of the iterations and the final passes (then
+    give no bone spheres: they would be ignored).
     """
     settings = settings or SolverSettings()
     check_settings(settings)
@@ -311,44 +254,81 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
 
 
 def _iterate(model, settings, mss, springs, contacts, control, lists, progress):
-    """The iterations in chunks of about :data:`CHUNK_SECONDS` (``progress`` called between
-    them). Returns ``(history, status, rebuilds, lists)``, ``history`` trimmed to the
-    iterations run."""
+    """The iterations, until a termination stops them (``progress`` called about every
+    :data:`PROGRESS_SECONDS`). Returns ``(history, status, rebuilds, lists)``, ``history``
+    trimmed to the iterations run.
+
+    The loop is Python calling one kernel per stage: a compiled loop around them compiled
+    and linked every stage a second time (10 s of a first run's compile, issue 27), to save
+    what the calls cost (about 40 microseconds an iteration, against 0.5-1 ms for a thigh
+    iteration at N = 20; docs/performance.md)."""
     cap = int(settings.iterations)
-    n_muscles = len(model.names)
-    history = IterationHistory(np.zeros((cap, n_muscles)), np.zeros(cap, dtype=np.int64),
-                               np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap),
+    history = IterationHistory(np.zeros((cap, len(model.names))), np.zeros(cap, np.int64),
+                               np.zeros(cap, np.int64), np.zeros(cap), np.zeros(cap),
                                np.zeros(4))
+    mean_disp, muscle_pairs, bone_pairs, max_pen, seconds, phases = history
     options = contact_options(settings)
-    structures = used_structures(contacts, options)
-    started = time.perf_counter()
-    done = 0
-    chunk = 1
-    status = RUNNING
-    rebuilds = 0
-    while done < cap and status == RUNNING:
-        before = done
-        tick = time.perf_counter()
-        status, done, bad, more, lists = _solve_chunk(
-            mss, springs, contacts, options, history, control, done, min(cap, done + chunk),
-            started, lists, *structures)
-        rebuilds += more
-        per_iteration = (time.perf_counter() - tick) / max(done - before, 1)
-        chunk = int(min(max(CHUNK_SECONDS / max(per_iteration, 1e-9), 1), 1000))
+    bvh, bone_table = used_structures(contacts, options)
+    spheres, solids = contacts.spheres, contacts.solids
+    x, v, x_prev, offsets = mss.x, mss.v, mss.x_prev, mss.offsets
+    particle, disp, collided, sphere_ptr = (spheres.particle, spheres.disp, spheres.collided,
+                                            spheres.sphere_ptr)
+    gather = (particle, spheres.centres, disp, collided, sphere_ptr, control.box,
+              np.zeros(len(model.names), dtype=np.bool_), solids, contacts.grid,
+              options.muscle_bone and solids.transforms.shape[0] > 0)
+    muscle_bone = options.muscle_bone
+    touched = np.zeros(solids.points.shape[0], dtype=np.uint8)
+    clock = time.perf_counter
+    started = clock()
+    report_at = started + PROGRESS_SECONDS
+    status, it, rebuilds = RUNNING, 0, 0
+    while it < cap and status == RUNNING:
+        t0 = clock()
+        bad = _step_and_gather(mss, springs, *gather)
+        t1 = clock()
+        if bad >= 0:
+            # a sphere left the world box (or is not finite): stop before any collision
+            # structure indexes its grid or tree with it
+            _mean_steps(x, x_prev, offsets, mean_disp[it])
+            _diverged(model, settings, history, it + 1, bad)
+        mm_count, mb_count, deepest, mm_seconds, mb_seconds, refreshed, lists = collide(
+            contacts, options, lists, bvh, bone_table)
+        rebuilds += refreshed
+        t3 = clock()
+        if muscle_bone:
+            respond_solids(x, v, solids, touched)
+        _respond_and_measure(x, v, x_prev, offsets, particle, disp, collided, sphere_ptr,
+                             mean_disp[it])
+        t4 = clock()
+        phases[0] += (t1 - t0) + (t4 - t3)
+        phases[1] += mm_seconds
+        phases[2] += mb_seconds
+        muscle_pairs[it] = mm_count
+        bone_pairs[it] = mb_count
+        max_pen[it] = deepest
+        seconds[it] = t4 - started
+        status, bad = _status(mean_disp, seconds, it, control)
+        it += 1
         if status == DIVERGED:
-            raise MuscleMSSError(
-                f"muscle '{model.names[bad]}' diverged at iteration {done}: its mean particle "
-                f"displacement was {history.mean_displacement[done - 1, bad]:.3g} mm in one "
-                f"iteration; lower the TimeStep (now {settings.relaxation.time_step} s) or "
-                "check stiffness and mass")
-        fraction = done / cap
-        if settings.termination == TERMINATION_BUDGET and settings.time_budget > 0:
-            fraction = max(fraction, history.seconds[done - 1] / settings.time_budget)
-        if progress is not None and status == RUNNING and done < cap and progress(fraction):
-            raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
-    trimmed = IterationHistory(*(column[:done].copy() for column in history[:-1]),
-                               history.phases)
+            _diverged(model, settings, history, it, bad)
+        if t4 >= report_at and progress is not None and status == RUNNING and it < cap:
+            report_at = t4 + PROGRESS_SECONDS
+            fraction = it / cap
+            if settings.termination == TERMINATION_BUDGET and settings.time_budget > 0:
+                fraction = max(fraction, seconds[it - 1] / settings.time_budget)
+            if progress(fraction):
+                raise MuscleMSSError(f"the solve was stopped by the user after {it} iterations")
+    trimmed = IterationHistory(*(column[:it].copy() for column in history[:-1]), phases)
     return trimmed, status, rebuilds, lists
+
+
+def _diverged(model, settings, history, done, bad):
+    """Raise the :class:`MuscleMSSError` of muscle ``bad`` diverging in iteration ``done``."""
+    raise MuscleMSSError(
+        f"muscle '{model.names[bad]}' diverged at iteration {done}: its mean particle "
+        f"displacement was {history.mean_displacement[done - 1, bad]:.3g} mm in one "
+        f"iteration; lower the TimeStep (now {settings.relaxation.time_step} s) or "
+        "check stiffness and mass")
 
 
 def _result(prep, settings, mss, spheres, contacts, box, lists, history, status, rebuilds):

@@ -27,6 +27,8 @@ those of :mod:`muscle_mss.core.mss`, shared with :mod:`muscle_mss.core.octree_bv
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
@@ -45,7 +47,6 @@ LEVEL_QUANTILES = (0.5, 0.9)
 INITIAL_ROOM = 64
 
 
-@njit(cache=True)
 def grid_table(centres, radius, cell, objects):
     """Hash ``centres`` (3, n) mm into a uniform grid over their bounding box.
 
@@ -57,36 +58,47 @@ def grid_table(centres, radius, cell, objects):
     query skips cells holding only its own object's spheres. Returns ``(lower (3,), dims (3,)
     int64, cell, start (cells + 1,), items (n,), bits (cells,), packed, tops (1,))``; sphere
     ``items[e]`` is the ``e``-th in key order; ``tops`` the size levels
-    (:func:`size_levels`, :func:`fill_grid`).
+    (:func:`size_levels`, :func:`fill_grid`). Built once per solve: Python around
+    :func:`fill_grid` (compiled, it took 1.5 s of a first run's compile and its quantiles 4 s
+    more; issue 27).
     """
     n = centres.shape[1]
     tops = size_levels(radius)
+    capacity = (8 * n + 64) * len(tops)     # cell_capacity(n) keys per level
     lower = np.zeros(3)
     dims = np.ones(3, dtype=np.int64)
-    start = np.zeros(cell_capacity(n) * tops.shape[0] + 1, dtype=np.int64)
+    start = np.zeros(capacity + 1, dtype=np.int64)
     items = np.empty(n, dtype=np.int64)
-    bits = np.zeros(cell_capacity(n) * tops.shape[0], dtype=np.uint64)
+    bits = np.zeros(capacity, dtype=np.uint64)
     packed = np.empty((5, n))
     key = np.empty(n, dtype=np.int64)
-    cell = fill_grid(centres, radius, objects, tops, cell, lower, dims, start, items, bits,
-                      packed, key)
-    cells = dims[0] * dims[1] * dims[2]
-    keys = cells * tops.shape[0]
+    cell = fill_grid(centres, radius, objects, tops, float(cell), lower, dims, start, items,
+                     bits, packed, key)
+    keys = int(dims[0] * dims[1] * dims[2]) * len(tops)
     return lower, dims, cell, start[:keys + 1], items, bits[:keys], packed, tops
 
 
-@njit(cache=True)
-def size_levels(radius):
+def size_levels(radius) -> np.ndarray:
     """Size levels of a grid (:func:`fill_grid`): the radii at :data:`LEVEL_QUANTILES` and the
     largest radius, ascending and distinct, mm ((1,) zero for no spheres). Muscle sphere radii
     vary tenfold (tendon ends to bellies): without levels every query would reach as far as
-    the largest sphere."""
-    if radius.shape[0] == 0:
+    the largest sphere. The quantiles interpolate between the two nearest ranks as Numba's
+    ``np.quantile`` does (NumPy's own differs from it in the last bit)."""
+    radius = np.asarray(radius, dtype=np.float64)
+    n = radius.shape[0]
+    if n == 0:
         return np.zeros(1)
+    ordered = np.sort(radius)
     tops = np.empty(len(LEVEL_QUANTILES) + 1)
-    for level in range(len(LEVEL_QUANTILES)):
-        tops[level] = np.quantile(radius, LEVEL_QUANTILES[level])
-    tops[-1] = radius.max()
+    for level, fraction in enumerate(LEVEL_QUANTILES):
+        rank = 1 + (n - 1) * ((fraction * 100.0) / 100.0)
+        below = math.floor(rank)
+        if n == 1:
+            tops[level] = ordered[0]
+        else:
+            part = rank - below
+            tops[level] = ordered[below - 1] * (1 - part) + ordered[min(below, n - 1)] * part
+    tops[-1] = ordered[-1]
     return np.unique(tops)
 
 
@@ -287,14 +299,14 @@ def candidate_lists(query, q_radius, q_object, table, skin):
     counts = np.zeros(nq + 1, dtype=np.int64)
     none = np.empty(0, dtype=np.int64)
     for i in prange(nq):
-        counts[i + 1] = scan_grid(i, query, q_radius, q_object, table, skin, 0.0, none, 0, 0, none,
-                              False)
+        counts[i + 1] = scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0,
+                                  none, np.int64(0), np.int64(0), none, np.bool_(False))
     for i in range(nq):
         counts[i + 1] += counts[i]
     idx = np.empty(counts[nq], dtype=np.int64)
     for i in prange(nq):
-        scan_grid(i, query, q_radius, q_object, table, skin, 0.0, idx, counts[i],
-              counts[i + 1] - counts[i], counts, False)
+        scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0, idx, counts[i],
+                  counts[i + 1] - counts[i], counts, np.bool_(False))
     return counts[:-1].copy(), counts[1:].copy(), idx
 
 
@@ -313,7 +325,8 @@ def _own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, beg
     the caller then grows ``room`` (and ``idx``), sets ``built`` to inf and calls again with
     ``retry``, which rebuilds every list and tests only the pending spheres. Returns the
     longest list found (above ``room``: call again)."""
-    for i in prange(query.shape[1]):
+    for k in prange(query.shape[1]):
+        i = np.int64(k)   # one type for the index in and outside the parallel loop's body
         if retry and not pending[i]:
             continue
         longest[i] = 0
@@ -321,8 +334,8 @@ def _own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, beg
         for axis in range(3):
             d2 += (query[axis, i] - built[axis, i]) ** 2
         if d2 > 0.25 * skin * skin:
-            found = scan_grid(i, query, q_radius, q_object, table, skin, 0.0, idx, i * room, room,
-                          begin, False)
+            found = scan_grid(i, query, q_radius, q_object, table, skin, 0.0, idx, i * room,
+                              room, begin, np.bool_(False))
             for axis in range(3):
                 built[axis, i] = query[axis, i]
             begin[i] = i * room

@@ -86,7 +86,7 @@ def _refresh_lists(reference, radius, muscle, table, skin, pad, stamp, queue, st
     for q in prange(stale):
         i = queue[q]
         count[i] = scan_grid(i, reference, radius, muscle, table, skin + ROUNDING_GUARD, pad, idx,
-                         slot[i], slot[i + 1] - slot[i], stamp, True)
+                             slot[i], slot[i + 1] - slot[i], stamp, np.bool_(True))
     over = 0
     for q in range(stale):
         i = queue[q]
@@ -96,30 +96,41 @@ def _refresh_lists(reference, radius, muscle, table, skin, pad, stamp, queue, st
     return over
 
 
-@njit(cache=True, parallel=True)
 def _relaid(count, slot, idx):
     """``(slot, idx, hit)`` with room for twice each list (and a few more), the lists that fit
-    their old room copied over (the others are rebuilt next)."""
+    their old room copied over (the others are rebuilt next). Rare (a list outgrew its room):
+    NumPy, so that no run compiles it in the middle of a solve."""
     n = count.shape[0]
-    grown = np.empty(n + 1, dtype=np.int64)
-    grown[0] = 0
-    for i in range(n):
-        grown[i + 1] = grown[i] + 2 * count[i] + 4
+    grown = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(2 * count + 4, out=grown[1:])
     pool = np.zeros(grown[n], dtype=idx.dtype)
-    for i in prange(n):
-        if count[i] <= slot[i + 1] - slot[i]:
-            for k in range(count[i]):
-                pool[grown[i] + k] = idx[slot[i] + k]
+    kept = np.where(count <= np.diff(slot), count, 0)
+    within = np.arange(kept.sum()) - np.repeat(np.cumsum(kept) - kept, kept)
+    pool[np.repeat(grown[:-1], kept) + within] = idx[np.repeat(slot[:-1], kept) + within]
     return grown, pool, np.zeros(grown[n], dtype=idx.dtype)
 
 
 @njit(cache=True, parallel=True)
-def _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end, partner, disp,
-             collided, pair_count, pair_pen):
-    """:func:`list_contacts` on the colliding pairs ``hit`` found by their owners: each sphere
-    gets its colliding partners ``partner[begin[i]:end[i]]`` in increasing index order and the
-    same response. The partner lists are gathered serially (a few thousand pairs), the
-    responses in parallel. Returns ``partner`` (grown when too short)."""
+def _test_and_respond(centres, radius, fixed, muscle, moves, stamp, slot, count, idx, hit, hits,
+                      begin, end, partner, disp, collided, pair_count, pair_pen):
+    """The exact tests of :func:`muscle_contacts`, each pair from its owner's list (sphere
+    ``i``'s colliding partners to ``hit[slot[i]:slot[i] + hits[i]]``), then
+    :func:`list_contacts` on those pairs: each sphere gets its colliding partners
+    ``partner[begin[i]:end[i]]`` in increasing index order and the same response. The tests
+    and the responses run in parallel, the partner lists are gathered serially (a few thousand
+    pairs). Returns ``partner`` (grown when too short)."""
+    for i in prange(centres.shape[1]):
+        found = slot[i]
+        for e in range(slot[i], slot[i] + count[i]):
+            j = idx[e]
+            if owns_pair(i, j, stamp):
+                pen, nx, ny, nz = sphere_push(centres[0, i], centres[1, i], centres[2, i],
+                                              radius[i], centres[0, j], centres[1, j],
+                                              centres[2, j], radius[j], True)
+                if pen > 0.0:
+                    hit[found] = j
+                    found += 1
+        hits[i] = found - slot[i]
     n = hits.shape[0]
     total = 0
     for i in range(n):
@@ -158,7 +169,6 @@ def _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end,
     return partner
 
 
-@njit(cache=True, parallel=True)
 def muscle_contacts(centres, radius, muscle, fixed, moves, skin, cell, lists, disp, collided,
                     pair_count, pair_pen):
     """Muscle-muscle collisions of one iteration with lists refreshed sphere by sphere.
@@ -179,6 +189,8 @@ def muscle_contacts(centres, radius, muscle, fixed, moves, skin, cell, lists, di
     :func:`muscle_lists`; ``disp``, ``collided``, ``pair_count``, ``pair_pen`` as
     :func:`list_contacts` fills them (the same response, bit for bit). Returns ``(spheres
     refreshed, lists)``: keep the returned lists (lists that outgrew their room got more).
+    Python around the kernels, called once an iteration: compiled, it compiled its kernels a
+    second time (issue 27).
     """
     (reference, stamp, clock, queue, count, slot, idx, hit, hits, grid_cell, drift, lower, dims,
      start, items, bits, packed, tops, key, begin, end, partner) = lists
@@ -201,22 +213,9 @@ def muscle_contacts(centres, radius, muscle, fixed, moves, skin, cell, lists, di
             slot, idx, hit = _relaid(count, slot, idx)
             _refresh_lists(reference, radius, muscle, table, skin, drift[0], stamp, queue,
                            over, count, slot, idx)
-    # the exact tests, each pair from its owner's list; the colliding partners go to
-    # hit[slot[i]:slot[i] + hits[i]]
-    for i in prange(n):
-        found = slot[i]
-        for e in range(slot[i], slot[i] + count[i]):
-            j = idx[e]
-            if owns_pair(i, j, stamp):
-                pen, nx, ny, nz = sphere_push(centres[0, i], centres[1, i], centres[2, i],
-                                              radius[i], centres[0, j], centres[1, j],
-                                              centres[2, j], radius[j], True)
-                if pen > 0.0:
-                    hit[found] = j
-                    found += 1
-        hits[i] = found - slot[i]
-    partner = _respond(centres, radius, fixed, muscle, moves, slot, hit, hits, begin, end,
-                       partner, disp, collided, pair_count, pair_pen)
+    partner = _test_and_respond(centres, radius, fixed, muscle, moves, stamp, slot, count, idx,
+                                hit, hits, begin, end, partner, disp, collided, pair_count,
+                                pair_pen)
     return stale, (reference, stamp, clock, queue, count, slot, idx, hit, hits, grid_cell,
                    drift, lower, dims, start, items, bits, packed, tops, key, begin, end,
                    partner)

@@ -177,7 +177,7 @@ def exact_at_queries(queries, chunks, mesh, tree, out, closest):
     n = queries.shape[0]
     for c in prange(chunks):
         stack = np.empty(_STACK, dtype=np.int64)
-        hint = -1
+        hint = np.int64(-1)
         for q in range(c * n // chunks, (c + 1) * n // chunks):
             out[q], hint, closest[q, 0], closest[q, 1], closest[q, 2] = _nearest_signed(
                 queries[q, 0], queries[q, 1], queries[q, 2], hint, stack, mesh, tree)
@@ -196,7 +196,7 @@ def exact_at_bricks(bricks, origin, spacing, mesh, tree, out):
         b = s // n
         a = s - b * n
         x = origin[0] + (bricks[b, 0] * brick + a) * spacing
-        row = -1
+        row = np.int64(-1)
         for j in range(n):
             y = origin[1] + (bricks[b, 1] * brick + j) * spacing
             hint = row

@@ -25,22 +25,29 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 
 from muscle_mss.core import kernel_cache
 from muscle_mss.core.pose import LINEAR
-from muscle_mss.core.settings import (DEFAULT_METHOD, METHOD_RELAXATION, METHODS, STRUCTURE_BVH,
+from muscle_mss.core.settings import (METHOD_RELAXATION, METHODS, STRUCTURE_BVH, STRUCTURES,
                                       TERMINATION_THRESHOLD)
 
 from . import motion_run
+from .collision_solver import BONE_CONTACTS
 
-DEFAULT_VARIANTS = ({"Iterations": 3},)
+DEFAULT_VARIANTS = ({"Iterations": 3}, {"Iterations": 30})
 """The default settings (the method :mod:`muscle_mss.core.settings` makes the default): the
-kernels a first run uses, compiled before any other."""
-OTHER_VARIANTS = tuple({"Iterations": 3, "Method": method, "ConnectiveTissue": 0.1}
-                       for method in METHODS if method != DEFAULT_METHOD) + (
+kernels a first run uses, compiled before any other. Python calls some kernels only when the
+data asks for them, so the tiny scene is solved twice: 3 iterations leave surface vertices
+inside a bone (the MVC Surface Deformer's push), 30 move spheres far enough for their lists
+to be patched in their grid (tests/test_compile_scope.py)."""
+OTHER_VARIANTS = tuple(
+    {"Iterations": 3, "Method": method, "CollisionStructure": structure, "BoneContact": contact,
+     "ConnectiveTissue": 0.1}
+    for method in METHODS for structure in STRUCTURES for contact in BONE_CONTACTS) + (
     {"Iterations": 3, "Method": METHOD_RELAXATION, "CollisionStructure": STRUCTURE_BVH,
      "Blending": LINEAR, "Termination": TERMINATION_THRESHOLD},
 )
-"""The other methods (with the connective tissue, whose energy kernel the default ratio 0
-does not reach), the octree BVH, linear blending and the relaxation's threshold termination:
-compiled after the defaults, so that a later choice compiles nothing either."""
+"""Every method with every collision structure and bone contact (with the connective tissue,
+whose kernels the default ratio 0 does not reach; each solve calls only the kernels of its
+choices), linear blending and the relaxation's threshold termination: compiled after the
+defaults, so that a later choice compiles nothing either."""
 VARIANTS = DEFAULT_VARIANTS + OTHER_VARIANTS
 """Filter settings whose tiny solves together call every kernel with the argument types of a
 real run (property values select kernels, not argument types), the defaults first."""

@@ -172,7 +172,7 @@ def test_an_iteration_history_too_large_for_memory_is_refused(pressed):
         run(pressed, iterations=10 ** 9, termination="time budget")
 
 
-def test_abort_between_chunks(pressed):
+def test_the_progress_callback_aborts_the_solve(pressed):
     calls = []
 
     def progress(fraction):

@@ -105,13 +105,19 @@ def test_a_script_taking_a_filter_says_it_through_the_vtk_output_window(warm_cac
     assert NOTICE not in runs[1].stderr
 
 
-def test_the_defaults_come_first_then_every_other_method():
+def test_the_defaults_come_first_then_every_method_structure_and_bone_contact():
     """The kernels of a run with the default settings (whichever method core.settings makes the
-    default) compile before any other; every method is warmed."""
-    from muscle_mss.core.settings import DEFAULT_METHOD, METHODS
+    default) compile before any other; then every method with every collision structure and
+    bone contact, each of which calls kernels of its own."""
+    from itertools import product
+
+    from muscle_mss.core.settings import METHODS, STRUCTURES
+    from muscle_mss.filters.collision_solver import BONE_CONTACTS
     assert warm_up.VARIANTS[:len(warm_up.DEFAULT_VARIANTS)] == warm_up.DEFAULT_VARIANTS
     assert all(set(v) == {"Iterations"} for v in warm_up.DEFAULT_VARIANTS)
-    assert {v.get("Method", DEFAULT_METHOD) for v in warm_up.VARIANTS} == set(METHODS)
+    combinations = {(v.get("Method"), v.get("CollisionStructure"), v.get("BoneContact"))
+                    for v in warm_up.OTHER_VARIANTS}
+    assert combinations >= set(product(METHODS, STRUCTURES, BONE_CONTACTS))
 
 
 def test_quiet_says_nothing_when_the_kernels_are_compiled(monkeypatch, capsys):

@@ -54,11 +54,12 @@ def elastic_energy(x, gradient, volume_gradient, energy, ends, rest, stiffness, 
                 gradient[1, a] -= f * dy
                 gradient[2, a] -= f * dz
         if bulk_modulus > 0.0 and cage_ptr[m + 1] > cage_ptr[m]:
-            strain = cage_volume(m, x, cage_ptr, cage_triangles) / (6.0 * rest_volume[m]) - 1.0
+            volume = cage_volume(np.int64(m), x, cage_ptr, cage_triangles)
+            strain = volume / (6.0 * rest_volume[m]) - 1.0
             e += 0.5 * bulk_modulus * rest_volume[m] * strain * strain
-            add_cage_gradient(m, x, gradient, bulk_modulus * strain / 6.0, cage_ptr,
+            add_cage_gradient(np.int64(m), x, gradient, bulk_modulus * strain / 6.0, cage_ptr,
                                cage_triangles)
-            add_cage_gradient(m, x, volume_gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
+            add_cage_gradient(np.int64(m), x, volume_gradient, 1.0 / 6.0, cage_ptr, cage_triangles)
         energy[m] = e
 
 
