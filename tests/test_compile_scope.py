@@ -52,8 +52,7 @@ print("LATER " + json.dumps(later))
 """
 
 BVH = "muscle_mss.core.octree_bvh."
-SPHERE_SET_CONTACTS = ("muscle_mss.core.contacts._bone_list_contacts",
-                       "muscle_mss.core.spatial_hash.own_list_contacts",
+SPHERE_SET_CONTACTS = ("muscle_mss.core.spatial_hash.own_list_contacts",
                        "muscle_mss.core.spatial_hash._own_list_contacts")
 METHOD_MODULES = {METHOD_RELAXATION: "muscle_mss.core.relaxation.",
                   METHOD_QUASI_STATIC: "muscle_mss.core.quasi_static."}
