@@ -78,12 +78,16 @@ def use_kernel_cache_dir() -> str:
     return path
 
 
-COMPILE_SECONDS = 150.0
-"""Seconds a cold compile of every kernel took on the shared 2-core development machine (the
-warm-up's wall time: 141-153 s with numba 0.68, 145-153 s with numba 0.56, load average 1;
-benchmarks/results/compile.md): the notice's estimate until this machine has measured its own
-(:func:`compile_estimate`)."""
-WARM_PREFIX = "warm-"
+EVERY_KERNEL, DEFAULT_KERNELS = "every kernel", "the default settings' kernels"
+"""What a warm-up compiles (:mod:`muscle_mss.filters.warm_up`): every kernel, or only those a
+run with the default settings calls (the demo's, compiled first by ``./demo.sh``). Each has a
+marker of its own; every kernel compiled covers the default settings' too."""
+COMPILE_SECONDS = {EVERY_KERNEL: 150.0, DEFAULT_KERNELS: 90.0}
+"""Seconds a cold compile took on the shared 2-core development machine (the warm-up's wall
+time, load average 1; benchmarks/results/compile.md): every kernel 139 s with numba 0.68, 130 s
+with numba 0.56; the default settings' 80-94 / 76 s. The notice's estimate until this machine
+has measured its own (:func:`compile_estimate`)."""
+WARM_PREFIX = {EVERY_KERNEL: "warm-", DEFAULT_KERNELS: "defaults-warm-"}
 
 
 def _core_folder() -> str:
@@ -102,31 +106,37 @@ def core_stamps(folder: str | None = None) -> dict:
     return stamps
 
 
-def warm_marker(folder: str | None = None) -> str:
-    """The file that says every kernel of the core in ``folder`` (default: this package) is
-    compiled in :func:`kernel_cache_dir`. Numba files its kernels under the absolute path of
-    their sources, so two checkouts of the same core sharing a cache folder have a marker each."""
+def warm_marker(folder: str | None = None, scope: str = EVERY_KERNEL) -> str:
+    """The file that says the kernels of ``scope`` (:data:`EVERY_KERNEL` or
+    :data:`DEFAULT_KERNELS`) of the core in ``folder`` (default: this package) are compiled in
+    :func:`kernel_cache_dir`. Numba files its kernels under the absolute path of their
+    sources, so two checkouts of the same core sharing a cache folder have a marker each."""
     folder = folder or _core_folder()
     where = hashlib.sha1(os.path.abspath(folder).encode()).hexdigest()[:12]
-    return os.path.join(kernel_cache_dir(folder=folder), f"{WARM_PREFIX}{where}.json")
+    return os.path.join(kernel_cache_dir(folder=folder), f"{WARM_PREFIX[scope]}{where}.json")
 
 
-def is_warm(folder: str | None = None) -> bool:
-    """True when :func:`mark_warm` recorded a complete compile of the current sources (the same
-    files, modification times and sizes), i.e. Numba will load every kernel from its cache."""
+def is_warm(folder: str | None = None, scope: str = EVERY_KERNEL) -> bool:
+    """True when :func:`mark_warm` recorded a compile of the kernels of ``scope`` (or of every
+    kernel) for the current sources (the same files, modification times and sizes), i.e. Numba
+    will load them from its cache."""
     import json
-    try:
-        with open(warm_marker(folder)) as f:
-            return json.load(f).get("stamps") == core_stamps(folder)
-    except (OSError, ValueError):
-        return False
+    for recorded in {scope, EVERY_KERNEL}:
+        try:
+            with open(warm_marker(folder, recorded)) as f:
+                if json.load(f).get("stamps") == core_stamps(folder):
+                    return True
+        except (OSError, ValueError):
+            continue
+    return False
 
 
-def mark_warm(seconds: float, folder: str | None = None) -> None:
-    """Record that every kernel was compiled (in ``seconds``) for the current sources. A cache
-    folder that cannot be written is not an error: Numba then compiles in memory each time."""
+def mark_warm(seconds: float, folder: str | None = None, scope: str = EVERY_KERNEL) -> None:
+    """Record that the kernels of ``scope`` were compiled (in ``seconds``) for the current
+    sources. A cache folder that cannot be written is not an error: Numba then compiles in
+    memory each time."""
     import json
-    path = warm_marker(folder)
+    path = warm_marker(folder, scope)
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         with open(path + ".tmp", "w") as f:
@@ -136,31 +146,46 @@ def mark_warm(seconds: float, folder: str | None = None) -> None:
         pass
 
 
+def recorded_seconds(folder: str | None = None, scope: str = EVERY_KERNEL) -> float:
+    """The seconds :func:`mark_warm` recorded for the kernels of ``scope`` of the current
+    sources (0 when none are recorded or the sources changed since)."""
+    import json
+    try:
+        with open(warm_marker(folder, scope)) as f:
+            record = json.load(f)
+        return float(record["seconds"]) if record.get("stamps") == core_stamps(folder) else 0.0
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0.0
+
+
 FULL_COMPILE_SECONDS = 30.0
 """A recorded warm-up shorter than this found most kernels cached: not a cold compile."""
 
 
-def compile_estimate(base: str | None = None) -> float:
-    """Seconds a cold compile is expected to take: the median of the cold compiles recorded on
-    this machine for this Python, Numba and NumPy (any version of the sources; warm-ups under
-    :data:`FULL_COMPILE_SECONDS` found their kernels cached), else :data:`COMPILE_SECONDS`. Not
-    the longest: one compile beside other work took 1,287 s where the others took 200-290 s."""
+def compile_estimate(base: str | None = None, scope: str = EVERY_KERNEL) -> float:
+    """Seconds a cold compile of the kernels of ``scope`` is expected to take: the median of
+    those recorded on this machine for this Python, Numba and NumPy (any version of the
+    sources; warm-ups under :data:`FULL_COMPILE_SECONDS` found their kernels cached), else
+    :data:`COMPILE_SECONDS`. Not the longest: one compile beside other work took 1,287 s where
+    the others took 200-290 s."""
     import glob
     import json
     base = base_cache_dir() if base is None else base
     recorded = []
-    for path in glob.glob(os.path.join(base, f"numba-*-{runtime_tag()}", WARM_PREFIX + "*.json")):
+    for path in glob.glob(os.path.join(base, f"numba-*-{runtime_tag()}",
+                                       WARM_PREFIX[scope] + "*.json")):
         try:
             with open(path) as f:
                 recorded.append(float(json.load(f)["seconds"]))
         except (OSError, ValueError, KeyError, TypeError):
             continue
     cold = sorted(s for s in recorded if s >= FULL_COMPILE_SECONDS)
-    return float(statistics.median(cold)) if cold else COMPILE_SECONDS
+    return float(statistics.median(cold)) if cold else COMPILE_SECONDS[scope]
 
 
-def compile_notice(seconds: float | None = None) -> str:
-    """The one-line notice shown while the kernels compile."""
-    seconds = compile_estimate() if seconds is None else seconds
-    return (f"compiling the numeric kernels once for this Python; about {seconds:.0f} s "
+def compile_notice(seconds: float | None = None, scope: str = EVERY_KERNEL) -> str:
+    """The one-line notice shown while the kernels of ``scope`` compile."""
+    seconds = compile_estimate(scope=scope) if seconds is None else seconds
+    which = "" if scope == EVERY_KERNEL else f" ({scope}; the others when a run needs them)"
+    return (f"compiling the numeric kernels once for this Python{which}; about {seconds:.0f} s "
             f"(cached in {kernel_cache_dir()})")

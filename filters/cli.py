@@ -207,7 +207,7 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
 
     writing = writing or run_output.Writing()
     start = wallclock.perf_counter()
-    compile_kernels()
+    compile_kernels(settings)
     bar = {}
 
     def on_step(result, done, total):
@@ -232,10 +232,12 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
     return rows
 
 
-def compile_kernels() -> None:
-    """Compile the numeric kernels first when this Python has not yet, saying so on stderr."""
-    from .warm_up import ensure_compiled, stderr_notice
-    ensure_compiled(stderr_notice)
+def compile_kernels(settings: dict | None = None) -> None:
+    """Compile the numeric kernels a run with the filter ``settings`` needs (None: every
+    kernel) first when this Python has not yet, saying so on stderr."""
+    from muscle_mss.core.kernel_cache import EVERY_KERNEL
+    from .warm_up import ensure_compiled, scope_for, stderr_notice
+    ensure_compiled(stderr_notice, EVERY_KERNEL if settings is None else scope_for(settings))
 
 
 @contextlib.contextmanager
@@ -279,7 +281,7 @@ def cmd_run(args) -> int:
 def run_time_point(args, settings, writing) -> None:
     """``muscle-mss run --time T``: solve and write the time point nearest T."""
     from . import motion_run, run_output
-    compile_kernels()
+    compile_kernels(settings)
     pipeline = motion_run.build_pipeline(args.scene, settings)
     index = time_point_index(pipeline.times, args.time)
     result = motion_run.solve_time_point(pipeline, index)

@@ -11,7 +11,11 @@ by running tiny solves through the filter chain (the default settings first, the
 method, collision structure and blending, so that a later choice compiles nothing either) and
 records the cache as warm. ``./setup.sh`` runs it for the venv, then for Debian's Python::
 
-    python -m muscle_mss.filters.warm_up [--quiet]
+    python -m muscle_mss.filters.warm_up [--quiet] [--defaults]
+
+``--defaults`` compiles only the kernels of a run with the default settings (``./demo.sh``
+first, so that the demo starts solving as soon as its own kernels are there; the CLI asks for
+no more when a run sets nothing else, :func:`scope_for`).
 """
 from __future__ import annotations
 
@@ -51,9 +55,13 @@ defaults, so that a later choice compiles nothing either."""
 VARIANTS = DEFAULT_VARIANTS + OTHER_VARIANTS
 """Filter settings whose tiny solves together call every kernel with the argument types of a
 real run (property values select kernels, not argument types), the defaults first."""
-_settled = {"done": False}
-"""Whether this process has found the kernels compiled or tried to compile them: later calls
-return at once (ParaView asks before every filter update; a failed warm-up is not retried)."""
+KERNEL_NEUTRAL_SETTINGS = frozenset({"ParticlesPerFibre", "Iterations"})
+"""Filter properties whose values do not change which kernels a run calls: a run that sets no
+other needs only the default settings' kernels (:func:`scope_for`)."""
+_settled = {kernel_cache.EVERY_KERNEL: False, kernel_cache.DEFAULT_KERNELS: False}
+"""Per scope, whether this process has found its kernels compiled or tried to compile them:
+later calls return at once (ParaView asks before every filter update; a failed warm-up is not
+retried). Every kernel settled settles the default settings' too."""
 
 
 def warm_up(variants=VARIANTS) -> float:
@@ -94,27 +102,40 @@ def _compiled_files() -> dict:
     return found
 
 
-def ensure_compiled(report) -> bool:
-    """When the kernel cache of this Python is cold, ``report(text)`` the compile notice,
-    compile every kernel (:func:`warm_up`), record the cache as warm and report the seconds it
-    took; at most once per process. Returns True when it compiled."""
-    if _settled["done"] or kernel_cache.is_warm():
-        _settled["done"] = True
+def scope_for(settings: dict) -> str:
+    """The kernels a run with the filter ``settings`` (property: value) needs compiled:
+    ``kernel_cache.DEFAULT_KERNELS`` when it sets nothing but :data:`KERNEL_NEUTRAL_SETTINGS`,
+    else ``kernel_cache.EVERY_KERNEL``."""
+    return (kernel_cache.DEFAULT_KERNELS if set(settings) <= KERNEL_NEUTRAL_SETTINGS
+            else kernel_cache.EVERY_KERNEL)
+
+
+def ensure_compiled(report, scope: str = kernel_cache.EVERY_KERNEL) -> bool:
+    """When this Python's kernels of ``scope`` (every kernel, or the default settings' only:
+    :func:`scope_for`) are not in its cache, ``report(text)`` the compile notice, compile them
+    (:func:`warm_up`), record the cache as warm for them and report the seconds it took; at
+    most once per process and scope. Returns True when it compiled."""
+    every = scope == kernel_cache.EVERY_KERNEL
+    if _settled[kernel_cache.EVERY_KERNEL] or _settled[scope] or kernel_cache.is_warm(
+            scope=scope):
+        _settled[scope] = True
         return False
-    report(kernel_cache.compile_notice())
+    report(kernel_cache.compile_notice(scope=scope))
+    # every kernel after the default settings' ones: the record is the sum of the two compiles
+    earlier = kernel_cache.recorded_seconds(scope=kernel_cache.DEFAULT_KERNELS) if every else 0.0
     before = _compiled_files()
     try:
-        seconds = warm_up()
+        seconds = warm_up(VARIANTS if every else DEFAULT_VARIANTS)
     except Exception as err:  # noqa: BLE001  the solve itself then compiles what it uses
         report(f"compiling ahead failed ({type(err).__name__}: {err}); the kernels compile as "
                "they are first used")
         return False
     finally:
-        _settled["done"] = True
+        _settled[scope] = True
     # The marker's seconds are the next cold start's estimate: a warm-up that compiled nothing
     # (its kernels were cached, the marker was not) keeps the earlier estimate.
-    kernel_cache.mark_warm(seconds if _compiled_files() != before
-                           else kernel_cache.compile_estimate())
+    kernel_cache.mark_warm(earlier + seconds if _compiled_files() != before
+                           else kernel_cache.compile_estimate(scope=scope), scope=scope)
     report(f"compiled the numeric kernels in {seconds:.0f} s; later runs of this Python load "
            "them from the cache")
     return True
@@ -132,10 +153,13 @@ def output_window_notice(text: str) -> None:
 
 
 def main(argv=None) -> int:
-    """``python -m muscle_mss.filters.warm_up [--quiet]``: compile (or find compiled) every
-    kernel; ``--quiet`` says nothing when they are compiled already (``./setup.sh`` run again)."""
-    quiet = "--quiet" in (sys.argv[1:] if argv is None else argv)
-    if not ensure_compiled(stderr_notice) and not quiet:
+    """``python -m muscle_mss.filters.warm_up [--quiet] [--defaults]``: compile (or find
+    compiled) every kernel, or with ``--defaults`` those a run with the default settings calls
+    (``./demo.sh`` before the demo); ``--quiet`` says nothing when they are compiled already
+    (``./setup.sh`` run again)."""
+    argv = sys.argv[1:] if argv is None else argv
+    scope = kernel_cache.DEFAULT_KERNELS if "--defaults" in argv else kernel_cache.EVERY_KERNEL
+    if not ensure_compiled(stderr_notice, scope) and "--quiet" not in argv:
         print(f"numeric kernels already compiled in {kernel_cache.kernel_cache_dir()}",
               file=sys.stderr)
     return 0

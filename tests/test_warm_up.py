@@ -26,43 +26,112 @@ def test_marker_follows_the_sources_stamps(tmp_path, monkeypatch):
     assert not kernel_cache.is_warm(str(core))
 
 
+EVERY, DEFAULTS = kernel_cache.EVERY_KERNEL, kernel_cache.DEFAULT_KERNELS
+
+
 def test_estimate_is_the_median_cold_compile_recorded(tmp_path):
-    assert kernel_cache.compile_estimate(str(tmp_path)) == kernel_cache.COMPILE_SECONDS
+    assert kernel_cache.compile_estimate(str(tmp_path)) == kernel_cache.COMPILE_SECONDS[EVERY]
+    assert kernel_cache.compile_estimate(str(tmp_path), DEFAULTS) == \
+        kernel_cache.COMPILE_SECONDS[DEFAULTS]
     for k, seconds in enumerate((95.0, 3.0, 1287.0, 120.0)):
         folder = tmp_path / f"numba-{k}-{kernel_cache.runtime_tag()}"
         folder.mkdir()
-        (folder / f"{kernel_cache.WARM_PREFIX}x.json").write_text(f'{{"seconds": {seconds}}}')
+        (folder / f"{kernel_cache.WARM_PREFIX[EVERY]}x.json").write_text(
+            f'{{"seconds": {seconds}}}')
+        (folder / f"{kernel_cache.WARM_PREFIX[DEFAULTS]}x.json").write_text(
+            f'{{"seconds": {seconds / 2}}}')
     other = tmp_path / "numba-0-cp27-numba0.1-numpy0.1"
     other.mkdir()
-    (other / f"{kernel_cache.WARM_PREFIX}x.json").write_text('{"seconds": 999}')
-    # 3 s found its kernels cached, another Python's 999 s does not count, one slow outlier
+    (other / f"{kernel_cache.WARM_PREFIX[EVERY]}x.json").write_text('{"seconds": 999}')
+    # 3 s found its kernels cached, another Python's 999 s does not count, one slow outlier;
+    # the default settings' compiles are estimated from their own records
     assert kernel_cache.compile_estimate(str(tmp_path)) == 120.0
+    assert kernel_cache.compile_estimate(str(tmp_path), DEFAULTS) == 60.0
+
+
+def test_every_kernel_warm_covers_the_default_settings_kernels_not_the_reverse(tmp_path,
+                                                                              monkeypatch):
+    core = tmp_path / "core"
+    core.mkdir()
+    (core / "a.py").write_text("x = 1\n")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    kernel_cache.mark_warm(50.0, str(core), DEFAULTS)
+    assert kernel_cache.is_warm(str(core), DEFAULTS) and not kernel_cache.is_warm(str(core))
+    os.remove(kernel_cache.warm_marker(str(core), DEFAULTS))
+    kernel_cache.mark_warm(120.0, str(core))
+    assert kernel_cache.is_warm(str(core), DEFAULTS) and kernel_cache.is_warm(str(core))
+
+
+def test_a_run_that_sets_only_resolution_and_iterations_needs_the_defaults_kernels_only():
+    assert warm_up.scope_for({}) == DEFAULTS
+    assert warm_up.scope_for({"ParticlesPerFibre": 40, "Iterations": 5}) == DEFAULTS
+    for other in ({"Method": "quasi-static"}, {"Layout": "k-NN"}, {"ConnectiveTissue": 0.1},
+                  {"FibreShortening": True}, {"Iterations": 5, "TissueAlongFibres": 0.5}):
+        assert warm_up.scope_for(other) == EVERY, other
+
+
+def _unsettled(monkeypatch):
+    """As in a new process: no scope settled yet."""
+    for scope in (EVERY, DEFAULTS):
+        monkeypatch.setitem(warm_up._settled, scope, False)
 
 
 def test_ensure_compiled_says_so_once_and_records_the_cache_warm(tmp_path, monkeypatch):
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
-    monkeypatch.setitem(warm_up._settled, "done", False)
+    _unsettled(monkeypatch)
     ran = []
-    monkeypatch.setattr(warm_up, "warm_up", lambda: ran.append(1) or 42.0)
+    monkeypatch.setattr(warm_up, "warm_up", lambda variants: ran.append(variants) or 42.0)
     said = []
     assert warm_up.ensure_compiled(said.append)
     assert len(said) == 2 and said[0].startswith(NOTICE) and "42 s" in said[1]
-    assert kernel_cache.is_warm() and ran == [1]
+    assert kernel_cache.is_warm() and ran == [warm_up.VARIANTS]
     assert not warm_up.ensure_compiled(said.append)  # once per process
-    monkeypatch.setitem(warm_up._settled, "done", False)
+    assert not warm_up.ensure_compiled(said.append, DEFAULTS)  # every kernel covers them
+    _unsettled(monkeypatch)
     assert not warm_up.ensure_compiled(said.append)  # a new process finds it warm
-    assert len(said) == 2 and ran == [1]
+    assert len(said) == 2 and len(ran) == 1
+
+
+def test_the_default_settings_kernels_compile_alone_then_the_others(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    _unsettled(monkeypatch)
+    ran = []
+
+    def compiling(variants):        # as a warm-up that compiles: a kernel file more
+        ran.append(variants)
+        folder = kernel_cache.kernel_cache_dir()
+        os.makedirs(folder, exist_ok=True)
+        open(os.path.join(folder, f"kernel{len(ran)}.nbc"), "w").close()
+        return 42.0
+
+    monkeypatch.setattr(warm_up, "warm_up", compiling)
+    said = []
+    assert warm_up.ensure_compiled(said.append, DEFAULTS)
+    assert ran == [warm_up.DEFAULT_VARIANTS] and said[0].startswith(NOTICE)
+    assert "the default settings' kernels" in said[0]
+    assert kernel_cache.is_warm(scope=DEFAULTS) and not kernel_cache.is_warm()
+    _unsettled(monkeypatch)
+    assert not warm_up.ensure_compiled(said.append, DEFAULTS)  # a new process: warm
+    assert warm_up.ensure_compiled(said.append)  # every kernel asked for: the others too
+    assert ran == [warm_up.DEFAULT_VARIANTS, warm_up.VARIANTS] and kernel_cache.is_warm()
+    # the record of every kernel (the next cold start's estimate) counts both compiles
+    assert kernel_cache.recorded_seconds(scope=DEFAULTS) == 42.0
+    assert kernel_cache.recorded_seconds() == 84.0
 
 
 @pytest.fixture
 def warm_cache_copy(tmp_path_factory):
-    """A copy of this Python's kernel cache with every kernel compiled but no warm marker: a
+    """A copy of this Python's kernel cache with every kernel compiled but no warm markers: a
     run in it goes through the cold path (the notice, the warm-up) in seconds."""
     warm_up.ensure_compiled(lambda text: None)  # compiles here if this Python is cold
     base = tmp_path_factory.mktemp("kernels")
     source = kernel_cache.kernel_cache_dir()
     shutil.copytree(source, base / os.path.basename(source))
-    os.remove(base / os.path.basename(source) / os.path.basename(kernel_cache.warm_marker()))
+    for scope in (EVERY, DEFAULTS):
+        copied = base / os.path.basename(source) / os.path.basename(
+            kernel_cache.warm_marker(scope=scope))
+        if copied.exists():
+            copied.unlink()
     return base
 
 
@@ -79,13 +148,22 @@ def test_cli_says_once_that_it_compiles_then_never_again(warm_cache_copy, small_
     assert first.returncode == 0, first.stderr
     assert first.stderr.count(NOTICE) == 1
     assert "compiled the numeric kernels in" in first.stderr
-    marker = os.path.join(str(warm_cache_copy), os.path.relpath(
-        kernel_cache.warm_marker(), kernel_cache.base_cache_dir()))
-    assert os.path.exists(marker)
+
+    def marker(scope):
+        return os.path.join(str(warm_cache_copy), os.path.relpath(
+            kernel_cache.warm_marker(scope=scope), kernel_cache.base_cache_dir()))
+
+    # a run with the default settings (the resolution and iterations aside) asked for their
+    # kernels only
+    assert os.path.exists(marker(DEFAULTS)) and not os.path.exists(marker(EVERY))
     second = _cli("run", small_scene_dir, tmp_path / "two", "--time", "0.5", "--iterations", "5",
                   cache=warm_cache_copy)
     assert second.returncode == 0, second.stderr
     assert NOTICE not in second.stderr
+    other = _cli("run", small_scene_dir, tmp_path / "three", "--time", "0.5", "--iterations", "5",
+                 "--method", "quasi-static", cache=warm_cache_copy)
+    assert other.returncode == 0, other.stderr
+    assert other.stderr.count(NOTICE) == 1 and os.path.exists(marker(EVERY))
 
 
 def test_a_script_taking_a_filter_says_it_through_the_vtk_output_window(warm_cache_copy,
@@ -122,8 +200,12 @@ def test_the_defaults_come_first_then_every_method_structure_and_bone_contact():
 
 def test_quiet_says_nothing_when_the_kernels_are_compiled(monkeypatch, capsys):
     """``./setup.sh`` runs the warm-up with ``--quiet``: silent when there is nothing to do."""
-    monkeypatch.setattr(warm_up, "ensure_compiled", lambda report: False)
+    asked = []
+    monkeypatch.setattr(warm_up, "ensure_compiled",
+                        lambda report, scope: asked.append(scope) and False)
     assert warm_up.main(["--quiet"]) == 0
     assert capsys.readouterr().err == ""
     assert warm_up.main([]) == 0
     assert "already compiled" in capsys.readouterr().err
+    assert warm_up.main(["--quiet", "--defaults"]) == 0
+    assert asked == [EVERY, EVERY, DEFAULTS]
