@@ -80,11 +80,11 @@ def test_ensure_compiled_says_so_once_and_records_the_cache_warm(tmp_path, monke
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     _unsettled(monkeypatch)
     ran = []
-    monkeypatch.setattr(warm_up, "warm_up", lambda variants: ran.append(variants) or 42.0)
+    monkeypatch.setattr(warm_up, "compile_ahead", lambda scope: ran.append(scope) or 42.0)
     said = []
     assert warm_up.ensure_compiled(said.append)
     assert len(said) == 2 and said[0].startswith(NOTICE) and "42 s" in said[1]
-    assert kernel_cache.is_warm() and ran == [warm_up.VARIANTS]
+    assert kernel_cache.is_warm() and ran == [EVERY]
     assert not warm_up.ensure_compiled(said.append)  # once per process
     assert not warm_up.ensure_compiled(said.append, DEFAULTS)  # every kernel covers them
     _unsettled(monkeypatch)
@@ -97,23 +97,23 @@ def test_the_default_settings_kernels_compile_alone_then_the_others(tmp_path, mo
     _unsettled(monkeypatch)
     ran = []
 
-    def compiling(variants):        # as a warm-up that compiles: a kernel file more
-        ran.append(variants)
+    def compiling(scope):        # as a warm-up that compiles: a kernel file more
+        ran.append(scope)
         folder = kernel_cache.kernel_cache_dir()
         os.makedirs(folder, exist_ok=True)
         open(os.path.join(folder, f"kernel{len(ran)}.nbc"), "w").close()
         return 42.0
 
-    monkeypatch.setattr(warm_up, "warm_up", compiling)
+    monkeypatch.setattr(warm_up, "compile_ahead", compiling)
     said = []
     assert warm_up.ensure_compiled(said.append, DEFAULTS)
-    assert ran == [warm_up.DEFAULT_VARIANTS] and said[0].startswith(NOTICE)
+    assert ran == [DEFAULTS] and said[0].startswith(NOTICE)
     assert "the default settings' kernels" in said[0]
     assert kernel_cache.is_warm(scope=DEFAULTS) and not kernel_cache.is_warm()
     _unsettled(monkeypatch)
     assert not warm_up.ensure_compiled(said.append, DEFAULTS)  # a new process: warm
     assert warm_up.ensure_compiled(said.append)  # every kernel asked for: the others too
-    assert ran == [warm_up.DEFAULT_VARIANTS, warm_up.VARIANTS] and kernel_cache.is_warm()
+    assert ran == [DEFAULTS, EVERY] and kernel_cache.is_warm()
     # the record of every kernel (the next cold start's estimate) counts both compiles
     assert kernel_cache.recorded_seconds(scope=DEFAULTS) == 42.0
     assert kernel_cache.recorded_seconds() == 84.0
@@ -209,3 +209,34 @@ def test_quiet_says_nothing_when_the_kernels_are_compiled(monkeypatch, capsys):
     assert "already compiled" in capsys.readouterr().err
     assert warm_up.main(["--quiet", "--defaults"]) == 0
     assert asked == [EVERY, EVERY, DEFAULTS]
+
+
+def test_the_two_processes_shares_cover_every_variant_once():
+    """``compile_ahead`` splits the warm-up between this process and a second one: together
+    they solve every variant, the first the defaults first; the second compiles the surfaces'
+    kernels (the chain without a solve) meanwhile."""
+    first, second = warm_up.shares(EVERY)
+    assert first[:len(warm_up.DEFAULT_VARIANTS)] == warm_up.DEFAULT_VARIANTS
+    assert sorted(map(repr, first + second)) == sorted(map(repr, warm_up.VARIANTS))
+    assert second and all(v not in first for v in second)
+    assert warm_up.shares(DEFAULTS) == (warm_up.DEFAULT_VARIANTS, ())
+
+
+def test_the_second_share_runs_the_surfaces_without_a_solve(monkeypatch):
+    """The second process's own command (compiled kernels: seconds) exits 0; the surfaces
+    alone run the MVC Surface Deformer and the probe without the solver."""
+    from muscle_mss.filters.collision_solver import MSSCollisionSolver
+    done = subprocess.run([sys.executable, "-m", "muscle_mss.filters.warm_up",
+                           "--second-share"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    solved, surfaces = [], []
+    monkeypatch.setattr(MSSCollisionSolver, "_solve", lambda *a: solved.append(1))
+    deform = warm_up.motion_run.MVCSurfaceDeformer.RequestData
+
+    def counted(self, *args):
+        surfaces.append(1)
+        return deform(self, *args)
+
+    monkeypatch.setattr(warm_up.motion_run.MVCSurfaceDeformer, "RequestData", counted)
+    warm_up.warm_up((), surfaces_alone=True)
+    assert surfaces and not solved
