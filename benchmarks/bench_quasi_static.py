@@ -63,6 +63,14 @@ def workload(pipeline, t):
     return model, bones, solid_bones(posed_bones)
 
 
+def thigh_workload(t, n):
+    """:func:`workload` of the full demo thigh at time ``t`` with ``n`` particles per fibre
+    (the scene written to a temporary folder for the pipeline's readers)."""
+    with tempfile.TemporaryDirectory() as folder:
+        write_scene(demo_scene("full"), folder)
+        return workload(build_pipeline(folder, {"ParticlesPerFibre": n}), t)
+
+
 def distance(a, b):
     d = np.linalg.norm(a - b, axis=1)
     return float(d.mean()), float(d.max())

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import tempfile
 import time
 
 import numpy as np
@@ -34,15 +33,12 @@ import scipy.linalg as linalg
 import scipy.sparse as sparse
 
 from muscle_mss.core import solver as S
-from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.fibre_shortening import shortened_rest_lengths
 from muscle_mss.core.model import prepare
 from muscle_mss.core.quasi_static.preconditioner import model_springs, preconditioner
 from muscle_mss.core.settings import SolverSettings
-from muscle_mss.filters.motion_run import build_pipeline
-from muscle_mss.filters.scene_io import write_scene
 
-from bench_quasi_static import distance, quasi_static, workload
+from bench_quasi_static import distance, quasi_static, thigh_workload
 from bench_solver import machine, write_result
 
 
@@ -145,10 +141,7 @@ def main(argv=None):
     parser.add_argument("--tissue", type=float, default=0.1, help="ConnectiveTissue")
     parser.add_argument("--cap", type=int, default=1500, help="iteration cap")
     args = parser.parse_args(argv)
-    with tempfile.TemporaryDirectory() as folder:
-        write_scene(demo_scene("full"), folder)
-        model, bones, solids = workload(build_pipeline(folder, {"ParticlesPerFibre": 20}),
-                                        args.time)
+    model, bones, solids = thigh_workload(args.time, 20)
     S.solve(model, *bones, bone_solids=solids, settings=quasi_static(iterations=2))
     ablation, reference, prepared = ablation_rows(model, bones, solids, args.tissue, args.cap)
     curvature = curvature_rows(model, prepared, reference.positions, args.tissue)

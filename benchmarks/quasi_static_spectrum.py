@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import tempfile
 
 import numba
 import numpy as np
@@ -28,11 +27,8 @@ import scipy.sparse as sparse
 
 from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.model import prepare
-from muscle_mss.core.demo_scene import demo_scene
-from muscle_mss.filters.motion_run import build_pipeline
-from muscle_mss.filters.scene_io import write_scene
 
-from bench_quasi_static import quasi_static, workload
+from bench_quasi_static import quasi_static, thigh_workload
 from bench_solver import cpu_model, write_result
 
 
@@ -77,10 +73,7 @@ def main(argv=None):
     parser.add_argument("--cap", type=int, default=1500, help="iteration cap")
     parser.add_argument("--window", type=int, default=100, help="pairs per row")
     args = parser.parse_args(argv)
-    with tempfile.TemporaryDirectory() as folder:
-        write_scene(demo_scene("full"), folder)
-        pipeline = build_pipeline(folder, {"ParticlesPerFibre": args.n})
-        model, bones, solids = workload(pipeline, args.time)
+    model, bones, solids = thigh_workload(args.time, args.n)
     quotients, result = rayleigh_quotients(model, bones, solids, args.cap)
     lines = [
         "# How well the quasi-static preconditioner matches the energy's curvature (issue 11)",
