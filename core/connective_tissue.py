@@ -107,11 +107,12 @@ def add_tissue_energy(x, target, stiffness, offsets, gradient, energy):
         energy[m] += e
 
 
-def tissue_share(model, positions, ratio: float, along: float) -> np.ndarray:
+def tissue_share(model, positions, ratio: float, along: float, tension=None) -> np.ndarray:
     """(M,) %: per muscle, the tissue's force ``sum_i |f_i|`` (``k_i |x_i - t_i|`` isotropic)
-    over the springs' ``sum_s k_s |l_s - l0_s|`` at the solved ``positions`` (n, 3) mm (input
-    order), targets the model's posed positions; how much of the load the tissue carries. 0
-    where ``ratio`` is 0 or nothing pulls, ``inf`` where only the tissue does."""
+    over the springs' ``sum_s |t_s|`` at the solved ``positions`` (n, 3) mm (input order),
+    targets the model's posed positions; how much of the load the tissue carries. ``tension``
+    (S,) g mm/s^2 each spring's force (omitted: Hooke's, ``k_s |l_s - l0_s|``). 0 where
+    ``ratio`` is 0 or nothing pulls, ``inf`` where only the tissue does."""
     offsets = np.asarray(model.offsets, dtype=np.int64)
     m_count = len(offsets) - 1
     if ratio == 0.0:
@@ -128,9 +129,10 @@ def tissue_share(model, positions, ratio: float, along: float) -> np.ndarray:
         d = d - np.einsum("ij,ij->i", d, g)[:, None] * g
     tissue = np.bincount(muscle, k * np.linalg.norm(d, axis=1), minlength=m_count)
     springs = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
-    length = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
-    tension = np.abs(np.asarray(model.stiffness, dtype=np.float64)
-                     * (length - np.asarray(model.rest_length, dtype=np.float64)))
+    if tension is None:
+        length = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
+        tension = np.abs(np.asarray(model.stiffness, dtype=np.float64)
+                         * (length - np.asarray(model.rest_length, dtype=np.float64)))
     spring = np.bincount(muscle[springs[:, 0]], tension, minlength=m_count)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(spring > 0.0, 100.0 * tissue / spring,

@@ -32,6 +32,10 @@ STRUCTURE_HASH = "spatial hash"
 STRUCTURE_BVH = "octree BVH"
 STRUCTURES = (STRUCTURE_HASH, STRUCTURE_BVH)
 
+SPRINGS_HOOKE = "Hooke"
+SPRINGS_COROTATIONAL = "co-rotational"
+SPRING_ENERGIES = (SPRINGS_HOOKE, SPRINGS_COROTATIONAL)
+
 # ---- defaults shared by both methods ---------------------------------------------------------
 
 DEFAULT_METHOD = METHOD_RELAXATION
@@ -89,6 +93,10 @@ DEFAULT_HISTORY = 8             # L-BFGS pairs kept
 # pose, 1.0 did not converge in 500 iterations, 0.3 converged in 398 (deepest overlap left for
 # the passes 0.19 mm); 0.1 and 0.03 did not converge either (more contacts slide).
 DEFAULT_CONTACT_WEIGHT = 0.3
+# The quasi-static method's spring energy: the paper's Hooke springs, or co-rotational springs
+# (core/quasi_static/corotational.py), which keep their stiffness across themselves when
+# compressed and so converge the flexed poses in a fraction of the iterations.
+DEFAULT_SPRINGS = SPRINGS_HOOKE
 
 
 @dataclass(slots=True)
@@ -138,11 +146,13 @@ class RelaxationSettings:
 class QuasiStaticSettings:
     """What only the quasi-static method reads: its tolerance (mm, the largest particle move of
     a quasi-Newton step), the contact stiffness (a multiple of the stiffest particle's spring
-    sum) and the number of L-BFGS pairs kept."""
+    sum), the number of L-BFGS pairs kept and the spring energy (one of
+    :data:`SPRING_ENERGIES`)."""
 
     tolerance: float = DEFAULT_TOLERANCE
     contact_weight: float = DEFAULT_CONTACT_WEIGHT
     history: int = DEFAULT_HISTORY
+    springs: str = DEFAULT_SPRINGS
 
 
 @dataclass(slots=True)

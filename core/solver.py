@@ -17,7 +17,8 @@ from __future__ import annotations
 
 from .connective_tissue import tissue_share
 from .model import MSSModel, PreparedModel, SolveResult, prepare
-from .settings import METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS, SolverSettings
+from .settings import (METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS, SPRINGS_COROTATIONAL,
+                       SolverSettings)
 from .errors import MuscleMSSError
 
 __all__ = ["MSSModel", "PreparedModel", "SolveResult", "prepare", "solve"]
@@ -44,6 +45,11 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     else:
         raise MuscleMSSError(f"solver method {settings.method!r} is not one of "
                              f"{', '.join(METHODS)}")
+    tension = None
+    if (settings.method == METHOD_QUASI_STATIC and settings.connective_tissue > 0.0
+            and settings.quasi_static.springs == SPRINGS_COROTATIONAL):
+        from .quasi_static.corotational import spring_tension
+        tension = spring_tension(model, result.positions)
     result.tissue_share = tissue_share(model, result.positions, settings.connective_tissue,
-                                       settings.tissue_along)
+                                       settings.tissue_along, tension)
     return result

@@ -11,7 +11,8 @@ from __future__ import annotations
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_ITERATIONS,
                                       DEFAULT_METHOD, DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
-                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS)
+                                      DEFAULT_SPRINGS, METHOD_QUASI_STATIC, METHOD_RELAXATION,
+                                      METHODS, SPRING_ENERGIES)
 
 from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
 from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
@@ -30,7 +31,7 @@ def method_option(method: str) -> str:
 def add_run_options(p) -> None:
     """The options that set up a run (``argparse`` parser ``p``): what the filters compute
     (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``,
-    ``--connective-tissue``, ``--tissue-along``, ``--fibre-shortening``) and what is
+    ``--springs``, ``--connective-tissue``, ``--tissue-along``, ``--fibre-shortening``) and what is
     written, and how (``--write``, ``--compressor``)."""
     p.add_argument("--resolution", type=int,
                    help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
@@ -49,6 +50,9 @@ def add_run_options(p) -> None:
     p.add_argument("--tolerance", type=float,
                    help="quasi-static tolerance: largest particle move of a step, mm "
                         f"(default {DEFAULT_TOLERANCE:g})")
+    p.add_argument("--springs", choices=SPRING_ENERGIES,
+                   help="quasi-static spring energy: the paper's Hooke springs or co-rotational "
+                        f"springs, stiff across themselves as well (default {DEFAULT_SPRINGS})")
     p.add_argument("--connective-tissue", type=float,
                    help="connective tissue holding each free particle toward its posed position, "
                         "as a ratio to the springs' stiffness; 0: the paper's model "
@@ -65,15 +69,19 @@ def settings_from(args) -> dict:
     """Filter property settings from the options that were given; :class:`MuscleMSSError` for
     an option that the chosen method would ignore."""
     method = METHOD_OPTIONS.get(args.method) or DEFAULT_METHOD
-    if args.tolerance is not None and method != METHOD_QUASI_STATIC:
-        raise MuscleMSSError(
-            f"--tolerance {args.tolerance:g} applies only to --method "
-            f"{method_option(METHOD_QUASI_STATIC)} (the largest particle move of its last step); "
-            f"--method {method_option(method)} runs --iterations iterations and would ignore "
-            f"it: drop --tolerance or add --method {method_option(METHOD_QUASI_STATIC)}")
+    for option, value, what in (
+            ("--tolerance", args.tolerance, "the largest particle move of its last step"),
+            ("--springs", args.springs, "its spring energy")):
+        if value is not None and method != METHOD_QUASI_STATIC:
+            raise MuscleMSSError(
+                f"{option} {value} applies only to --method "
+                f"{method_option(METHOD_QUASI_STATIC)} ({what}); --method "
+                f"{method_option(method)} runs --iterations iterations and would ignore it: "
+                f"drop {option} or add --method {method_option(METHOD_QUASI_STATIC)}")
     pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
              ("Iterations", args.iterations), ("Method", METHOD_OPTIONS.get(args.method)),
-             ("Tolerance", args.tolerance), ("ConnectiveTissue", args.connective_tissue),
+             ("Tolerance", args.tolerance), ("Springs", args.springs),
+             ("ConnectiveTissue", args.connective_tissue),
              ("TissueAlongFibres", args.tissue_along),
              ("FibreShortening", args.fibre_shortening))
     return {name: value for name, value in pairs if value is not None}

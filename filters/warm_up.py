@@ -33,7 +33,8 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 
 from muscle_mss.core import kernel_cache
 from muscle_mss.core.pose import LINEAR
-from muscle_mss.core.settings import (METHOD_RELAXATION, METHODS, STRUCTURE_BVH, STRUCTURES,
+from muscle_mss.core.settings import (METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS,
+                                      SPRINGS_COROTATIONAL, STRUCTURE_BVH, STRUCTURES,
                                       TERMINATION_THRESHOLD)
 
 from . import motion_run
@@ -51,10 +52,13 @@ OTHER_VARIANTS = tuple(
     for method in METHODS for structure in STRUCTURES for contact in BONE_CONTACTS) + (
     {"Iterations": 3, "Method": METHOD_RELAXATION, "CollisionStructure": STRUCTURE_BVH,
      "Blending": LINEAR, "Termination": TERMINATION_THRESHOLD},
+    {"Iterations": 3, "Method": METHOD_QUASI_STATIC, "Springs": SPRINGS_COROTATIONAL,
+     "ConnectiveTissue": 0.1},
 )
 """Every method with every collision structure and bone contact (with the connective tissue,
 whose kernels the default ratio 0 does not reach; each solve calls only the kernels of its
-choices), linear blending and the relaxation's threshold termination: compiled after the
+choices), linear blending, the relaxation's threshold termination and the quasi-static
+method's co-rotational springs: compiled after the
 defaults, so that a later choice compiles nothing either."""
 VARIANTS = DEFAULT_VARIANTS + OTHER_VARIANTS
 """Filter settings whose tiny solves together call every kernel with the argument types of a

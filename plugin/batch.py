@@ -42,7 +42,7 @@ def parse_args(argv):
     return parser.parse_args(argv)
 
 
-STUDY_IGNORES = ("layout", "iterations", "method", "tolerance", "connective_tissue",
+STUDY_IGNORES = ("layout", "iterations", "method", "tolerance", "springs", "connective_tissue",
                  "tissue_along", "fibre_shortening", "write")
 """Run options a study does not take (it runs every layout, the filters' defaults)."""
 

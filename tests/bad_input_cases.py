@@ -408,6 +408,10 @@ CASES = [
          "silently, before)",
          r"--tolerance 0.01 applies only to --method quasi-static .*drop --tolerance or add "
          r"--method quasi-static", options=("--tolerance", "0.01"), chain=False),
+    Case("springs-with-paper", "`--springs co-rotational` with the paper method, the default",
+         r"--springs co-rotational applies only to --method quasi-static \(its spring energy\)"
+         r".*drop --springs or add --method quasi-static",
+         options=("--springs", "co-rotational"), chain=False),
     Case("write-nothing", "`--write ''` (everything written, before)",
          r"--write '' names no series to write; give one or more of surfaces,fibres,particles",
          options=("--write", ""), chain=False),

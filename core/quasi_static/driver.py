@@ -15,8 +15,8 @@ from ..contacts import (Contacts, bvh_state, collision_spheres, final_passes, ha
                         solved_state, world_box)
 from ..errors import MuscleMSSError
 from ..model import MSSModel, PreparedModel, SolveResult, check_history_size, prepare
-from ..settings import (METHOD_QUASI_STATIC, STRUCTURE_BVH, TERMINATION_BUDGET,
-                        TERMINATION_ITERATIONS, SolverSettings)
+from ..settings import (METHOD_QUASI_STATIC, SPRING_ENERGIES, STRUCTURE_BVH,
+                        TERMINATION_BUDGET, TERMINATION_ITERATIONS, SolverSettings)
 from ..solid_contacts import solid_grid, solid_state
 from .energy import ContactEnergy
 from .lbfgs import LBFGSHistory, direction, inner, largest_move, settled
@@ -86,6 +86,9 @@ def check_settings(settings: SolverSettings) -> None:
         if not (value >= 0.0 and np.isfinite(value)):
             raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
     check_along(settings.tissue_along)
+    if settings.quasi_static.springs not in SPRING_ENERGIES:
+        raise MuscleMSSError(f"solver springs {settings.quasi_static.springs!r} is not one of "
+                             f"{', '.join(SPRING_ENERGIES)}")
     weight = settings.quasi_static.contact_weight
     if not (weight > 0.0 and np.isfinite(weight)):
         raise MuscleMSSError(f"solver contact weight is {weight}; it must be "

@@ -16,7 +16,9 @@ from ..bone_distance import sample, to_rest
 from ..connective_tissue import add_tissue_energy
 from ..mss import add_cage_gradient, cage_volume
 from ..smooth_distance import smooth_sample
+from ..settings import SPRINGS_COROTATIONAL
 from ..solid_contacts import solid_points
+from .corotational import add_corotational_energy, corotational_state
 from .preconditioner import Preconditioner, model_springs
 
 # Contact list skin, times the mean muscle sphere radius (the spatial hash's own lists use
@@ -222,6 +224,15 @@ class ContactEnergy:
         self.volume_gradient = np.zeros((3, n))
         self.muscle_energy = np.zeros(len(prep.offsets) - 1)
         self.springs = model_springs(model, prep)
+        # co-rotational springs: their own term, the Hooke term's springs left out
+        self.corotational = None
+        if settings.quasi_static.springs == SPRINGS_COROTATIONAL:
+            rest = model.positions if model.rest_positions is None else model.rest_positions
+            rest = np.asarray(rest, dtype=np.float64).reshape(-1, 3)[prep.order]
+            self.corotational = corotational_state(rest, self.springs[0], self.springs[1])
+            self.hooke_ptr = np.zeros_like(self.springs[3])
+        else:
+            self.hooke_ptr = self.springs[3]
         self.bulk_modulus = float(settings.bulk_modulus)
         self.spheres = spheres
         ns = spheres.count
@@ -310,8 +321,11 @@ class ContactEnergy:
         springs = self.springs
         cages = self.prep.cages
         elastic_energy(self.x, self.gradient, self.volume_gradient, self.muscle_energy, springs[0],
-                 springs[1], springs[2], springs[3], self.bulk_modulus, cages.ptr,
+                 springs[1], springs[2], self.hooke_ptr, self.bulk_modulus, cages.ptr,
                  cages.triangles, cages.rest_volume, self.prep.offsets)
+        if self.corotational is not None:
+            add_corotational_energy(self.x, self.gradient, self.muscle_energy, springs[0],
+                                    springs[2], springs[3], self.prep.offsets, self.corotational)
         if self.target is not None:
             add_tissue_energy(self.x, self.target, self.pre.tissue, self.prep.offsets,
                               self.gradient, self.muscle_energy)
