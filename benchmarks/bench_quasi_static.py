@@ -3,6 +3,8 @@ demo scenes: the thigh (13 muscles) at its walking pose (t = 0.35 s, as bench_so
 most flexed pose (t = 0.75 s), the elbow (7 muscles) at 70 and 130 degrees of flexion; lattice-26,
 the filter's bone spheres and bones as solids.
 
+Every quasi-static solve uses the spring energy ``--springs`` and the contact weight
+``--contact-weight`` (the solver's defaults unless given).
 Table 1, per scene, pose and N (particles per fibre), at ConnectiveTissue ``--ratio``:
 iterations and seconds of the solve (Tolerance 1e-3 mm, cap ``--cap``), whether it converged,
 its last step, the distance of its particles to a 10x tighter solve, to the solve without
@@ -10,14 +12,16 @@ tissue at the same cap and to the paper relaxation (500 iterations, no tissue), 
 and the tissue's share of each muscle's load (median / max %).
 Table 2, the ratio sweep (``--sweep``) at N = 20: iterations, seconds, converged, distance to
 the untethered solve and the volume error of the muscles' cages (mean / max %).
-Table 3, the thigh walk (21 time points, N = 20, ``--ratio``) solved in time order cold (each
-from its posed state) and warm (from the last solution carried by the pose change): seconds,
-iterations, converged, and how far the two answers are apart at the most flexed pose.
+Table 3, each scene's motion (thigh walk 21 time points, elbow 13; N ``--walk-sizes``,
+``--ratio``) solved in time order cold (each from its posed state) and warm (from the last solution carried by the
+pose change): seconds, iterations, converged, and how far the two answers are apart at the
+most flexed pose.
 Machine and load in the tables; written to benchmarks/results/quasi_static.md.
 
     python benchmarks/bench_quasi_static.py [--scenes thigh arm] [--sizes 20 80]
         [--ratio 0.01] [--sweep 0 0.001 0.003 0.01 0.03] [--cap 1500] [--walk-cap 300]
-        [--out quasi_static.md]
+        [--springs Hooke|co-rotational] [--contact-weight 0.3] [--walk-sizes 20 80]
+        [--walk-modes cold warm] [--out quasi_static.md]
 """
 from __future__ import annotations
 
@@ -32,8 +36,9 @@ from muscle_mss.core import solver as S
 from muscle_mss.core.demo_arm import demo_arm_scene, flexion_angles
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.model import prepare
-from muscle_mss.core.settings import (DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
-                                      METHOD_QUASI_STATIC, SolverSettings)
+from muscle_mss.core.settings import (DEFAULT_SPRINGS,
+                                      DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
+                                      METHOD_QUASI_STATIC, SPRING_ENERGIES, SolverSettings)
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
 from muscle_mss.filters.collision_solver import MSSCollisionSolver, solid_bones
@@ -50,6 +55,11 @@ ARM_ANGLES = (70.0, 130.0)
 def quasi_static(**values) -> SolverSettings:
     """Quasi-static settings from flat keywords (:meth:`SolverSettings.build`)."""
     return SolverSettings.build(method=METHOD_QUASI_STATIC, **values)
+
+
+def chosen(args, **values) -> SolverSettings:
+    """:func:`quasi_static` with the spring energy and contact weight of the command line."""
+    return quasi_static(springs=args.springs, contact_weight=args.contact_weight, **values)
 
 
 def workload(pipeline, t):
@@ -111,12 +121,12 @@ def timed(model, bones, solids, prepared, settings):
 def pose_row(model, bones, solids, prepared, args):
     """Table 1's measurements of one pose."""
     result, seconds = timed(model, bones, solids, prepared,
-                            quasi_static(iterations=args.cap, connective_tissue=args.ratio))
-    tight, _ = timed(model, bones, solids, prepared, quasi_static(
-        iterations=3 * args.cap, tolerance=DEFAULT_TOLERANCE / 10,
+                            chosen(args, iterations=args.cap, connective_tissue=args.ratio))
+    tight, _ = timed(model, bones, solids, prepared, chosen(
+        args, iterations=3 * args.cap, tolerance=DEFAULT_TOLERANCE / 10,
         connective_tissue=args.ratio))
     free, _ = timed(model, bones, solids, prepared,
-                    quasi_static(iterations=args.cap, connective_tissue=0.0))
+                    chosen(args, iterations=args.cap, connective_tissue=0.0))
     paper, _ = timed(model, bones, solids, prepared, SolverSettings(connective_tissue=0.0))
     share = result.tissue_share
     return (result.iterations, seconds, result.converged, float(result.residual[-1]),
@@ -131,7 +141,7 @@ def sweep_rows(model, bones, solids, prepared, args):
     rows, untethered = [], None
     for ratio in args.sweep:
         result, seconds = timed(model, bones, solids, prepared,
-                                quasi_static(iterations=args.cap, connective_tissue=ratio))
+                                chosen(args, iterations=args.cap, connective_tissue=ratio))
         untethered = result if untethered is None else untethered
         rows.append((ratio, result.iterations, seconds, result.converged,
                      *distance(result.positions, untethered.positions),
@@ -139,37 +149,43 @@ def sweep_rows(model, bones, solids, prepared, args):
     return rows
 
 
-def walk_rows(scene, folder, args):
-    """Table 3: the thigh walk cold and warm, and the two answers' distance at the most
-    flexed pose."""
-    pipeline = build_pipeline(folder, {"ParticlesPerFibre": 20})
+def walk_rows(scene, folder, args, flexed_time, n):
+    """Table 3: the motion at ``n`` particles per fibre, cold and warm (``args.walk_modes``),
+    and the two answers' distance at its most flexed pose (the time point nearest
+    ``flexed_time``; None with one mode)."""
+    pipeline = build_pipeline(folder, {"ParticlesPerFibre": n})
     inputs = [workload(pipeline, float(t)) for t in scene.motion.times]
     prepared = prepare(inputs[0][0])
-    settings = quasi_static(iterations=args.walk_cap, connective_tissue=args.ratio)
-    flexed = int(np.argmin(np.abs(scene.motion.times - THIGH_POSES[1][1])))
+    settings = chosen(args, iterations=args.walk_cap, connective_tissue=args.ratio)
+    flexed = int(np.argmin(np.abs(scene.motion.times - flexed_time)))
     rows, answers = [], []
-    for mode in ("cold", "warm"):
-        last, iterations, converged = None, 0, 0
-        tick = time.perf_counter()
+    for mode in args.walk_modes:
+        last, iterations, converged, seconds = None, [], 0, []
         for k, (model, bones, solids) in enumerate(inputs):
             start = None if (mode == "cold" or last is None) else (
                 model.positions + (last[1] - last[0]))
+            tick = time.perf_counter()
             result = S.solve(model, *bones, settings=settings, prepared=prepared, start=start,
                              bone_solids=solids)
+            seconds.append(time.perf_counter() - tick)
             last = (model.positions, result.positions)
-            iterations += result.iterations
+            iterations.append(result.iterations)
             converged += int(result.converged)
+            print(f"  {scene} N={n} {mode} t={scene.motion.times[k]:.3f}: {result.iterations} "
+                  f"iterations, {seconds[-1]:.2f} s, converged {int(result.converged)}",
+                  flush=True)
             if k == flexed:
                 answers.append(result.positions)
-        rows.append((mode, len(inputs), time.perf_counter() - tick, iterations, converged,
+        rows.append((n, mode, len(inputs), sum(seconds), max(seconds), sum(iterations),
+                     int(np.median(iterations)), max(iterations), converged,
                      os.getloadavg()[0]))
         print(rows[-1], flush=True)
-    return rows, distance(*answers)
+    return rows, distance(*answers) if len(answers) == 2 else None
 
 
 def main(args):
     yes = {True: "yes", False: "no"}
-    table1, table2, walk = [], [], None
+    table1, table2, walks = [], [], []
     for name, scene, poses in scenes(args.scenes):
         folder = tempfile.mkdtemp(prefix=f"bench_qs_{name}_")
         write_scene(scene, folder)
@@ -187,16 +203,18 @@ def main(args):
                     for row in sweep_rows(model, bones, solids, prepared, args):
                         table2.append((name, label, *row))
                         print(table2[-1], flush=True)
-        if name == "thigh" and args.walk_cap:
-            walk = walk_rows(scene, folder, args)
+        if args.walk_cap:
+            for n in args.walk_sizes:
+                walks.append((name, *walk_rows(scene, folder, args, poses[-1][1], n)))
 
     lines = [
         "# Quasi-static solver with the connective tissue (both demo scenes)", "",
         f"Machine: {machine()}. The machine is shared: the load average (1 min) after "
         "each row is given."]
     table1_lines = [
-        "", f"Table 1: ConnectiveTissue {args.ratio:g} (TissueAlongFibres "
-        f"{DEFAULT_TISSUE_ALONG:g}), Tolerance {DEFAULT_TOLERANCE} mm, cap "
+        "", f"Table 1: Springs {args.springs}, contact weight "
+        f"{chosen(args).quasi_static.weight:g}, "
+        f"ConnectiveTissue {args.ratio:g} (TissueAlongFibres {DEFAULT_TISSUE_ALONG:g}), Tolerance {DEFAULT_TOLERANCE} mm, cap "
         f"{args.cap} iterations, bones as solids. Tighter: Tolerance "
         f"{DEFAULT_TOLERANCE / 10} mm, cap {3 * args.cap}. No tissue: the same solve at "
         "ConnectiveTissue 0. Paper: the paper relaxation, 500 iterations, no tissue. "
@@ -223,15 +241,20 @@ def main(args):
         for scene, label, ratio, it, sec, conv, dm, dx, vm, vx, load in table2:
             lines.append(f"| {scene} | {label} | {ratio:g} | {it} | {sec:.2f} | {yes[conv]} "
                          f"| {dm:.2f} / {dx:.1f} | {vm:.2f} / {vx:.2f} | {load:.2f} |")
-    if walk:
-        rows, (dm, dx) = walk
-        lines += ["", f"Table 3: the thigh walk (N = 20, ConnectiveTissue {args.ratio:g}, cap "
-                  f"{args.walk_cap} iterations per time point, in time order). Cold and warm "
-                  f"answers at the most flexed pose: {dm:.2f} mm mean, {dx:.1f} mm max apart.",
-                  "", "| start | time points | seconds | iterations | converged | load |",
-                  "|---|---|---|---|---|---|"]
-        for mode, count, sec, it, conv, load in rows:
-            lines.append(f"| {mode} | {count} | {sec:.1f} | {it} | {conv} | {load:.2f} |")
+    if walks:
+        lines += ["", f"Table 3: each motion (ConnectiveTissue {args.ratio:g}, cap "
+                  f"{args.walk_cap} iterations per time point, in time order), cold (each time "
+                  "point from its posed state) or warm (from the last answer carried by the "
+                  "pose change); iterations in all and per time point (median, max); cold to "
+                  "warm: the two answers' distance at the most flexed pose, mean / max mm.", "",
+                  "| scene | N | start | time points | seconds | slowest point s | iterations | "
+                  "per point median / max | converged | load | cold to warm |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for scene, rows, apart in walks:
+            gap = "—" if apart is None else f"{apart[0]:.2f} / {apart[1]:.1f}"
+            for n, mode, count, sec, slowest, it, median, most, conv, load in rows:
+                lines.append(f"| {scene} | {n} | {mode} | {count} | {sec:.1f} | {slowest:.1f} "
+                             f"| {it} | {median} / {most} | {conv} | {load:.2f} | {gap} |")
     write_result(lines, args.out)
 
 
@@ -244,8 +267,15 @@ if __name__ == "__main__":
     parser.add_argument("--ratio", type=float, default=1e-2)
     parser.add_argument("--sweep", type=float, nargs="*", default=[0, 1e-3, 3e-3, 1e-2, 3e-2])
     parser.add_argument("--cap", type=int, default=1500)
+    parser.add_argument("--springs", choices=SPRING_ENERGIES, default=DEFAULT_SPRINGS)
+    parser.add_argument("--contact-weight", type=float,
+                        help="the contact penalty's weight (default: the spring energy's)")
     parser.add_argument("--walk-cap", type=int, default=300,
                         help="iterations per time point of Table 3 (0: no Table 3)")
+    parser.add_argument("--walk-sizes", type=int, nargs="+", default=[20],
+                        help="particles per fibre of Table 3's motions")
+    parser.add_argument("--walk-modes", nargs="+", choices=("cold", "warm"),
+                        default=["cold", "warm"], help="Table 3's starts")
     parser.add_argument("--out", default="quasi_static.md",
                         help="file name in benchmarks/results/")
     main(parser.parse_args())

@@ -88,11 +88,16 @@ DEFAULT_TOLERANCE = 1e-3        # mm, largest particle move of a quasi-Newton st
 DEFAULT_HISTORY = 8             # L-BFGS pairs kept
 # The contact stiffness w as a multiple of the largest diagonal entry of L (the sum of the
 # stiffnesses of one particle's springs, 260 g/s^2 for a lattice-26 particle at the Spring
-# Builder's 10 g/s^2). Stiffer contacts leave less overlap for the final passes but are stiff
-# modes the Laplacian preconditioner does not know: on the full demo thigh at N = 20, walking
-# pose, 1.0 did not converge in 500 iterations, 0.3 converged in 398 (deepest overlap left for
-# the passes 0.19 mm); 0.1 and 0.03 did not converge either (more contacts slide).
-DEFAULT_CONTACT_WEIGHT = 0.3
+# Builder's 10 g/s^2), per spring energy. Stiffer contacts leave less overlap for the final
+# passes but are stiff modes the Laplacian preconditioner does not know. Hooke springs: on the
+# full demo thigh at N = 20, walking pose, 1.0 did not converge in 500 iterations, 0.3 converged
+# in 398 (deepest overlap left for the passes 0.19 mm); 0.1 and 0.03 did not converge either
+# (more contacts slide). Co-rotational springs (ConnectiveTissue 0.1, N = 20): at 0.3 the elbow
+# at 130 degrees ends with a biceps sphere wedged 5.4 mm deep between humerus and radius, which
+# the final passes cannot free; at 1.0 every time point of both demo motions converges (the
+# thigh walk in 3,483 iterations in all, against 2,150 at 0.3) and the cages' volume error is
+# about halved (the final passes have less overlap to take up).
+DEFAULT_CONTACT_WEIGHTS = {SPRINGS_HOOKE: 0.3, SPRINGS_COROTATIONAL: 1.0}
 # The quasi-static method's spring energy: the paper's Hooke springs, or co-rotational springs
 # (core/quasi_static/corotational.py), which keep their stiffness across themselves when
 # compressed and so converge the flexed poses in a fraction of the iterations.
@@ -146,13 +151,20 @@ class RelaxationSettings:
 class QuasiStaticSettings:
     """What only the quasi-static method reads: its tolerance (mm, the largest particle move of
     a quasi-Newton step), the contact stiffness (a multiple of the stiffest particle's spring
-    sum), the number of L-BFGS pairs kept and the spring energy (one of
-    :data:`SPRING_ENERGIES`)."""
+    sum; None: the spring energy's, :data:`DEFAULT_CONTACT_WEIGHTS`), the number of L-BFGS
+    pairs kept and the spring energy (one of :data:`SPRING_ENERGIES`)."""
 
     tolerance: float = DEFAULT_TOLERANCE
-    contact_weight: float = DEFAULT_CONTACT_WEIGHT
+    contact_weight: float | None = None
     history: int = DEFAULT_HISTORY
     springs: str = DEFAULT_SPRINGS
+
+    @property
+    def weight(self) -> float:
+        """The contact stiffness in use: ``contact_weight``, or the spring energy's default."""
+        if self.contact_weight is None:
+            return DEFAULT_CONTACT_WEIGHTS[self.springs]
+        return self.contact_weight
 
 
 @dataclass(slots=True)

@@ -143,8 +143,10 @@ class MSSCollisionSolver(MuscleFilter):
                  "k (|d - R_a D|^2 + |d - R_b D|^2) / 4, D its rest vector, R_a and R_b the "
                  "rotations that best fit its two particles' springs: the same as Hooke for a "
                  "stretch along the spring, stiff across it as well (the lattice resists "
-                 "shear); 3-5 times fewer iterations on the demo poses, the answer a few mm "
-                 "from Hooke's (docs/solver-notes.md).",
+                 "shear), with contacts 1.0 instead of 0.3 times as stiff; with "
+                 "ConnectiveTissue 0.1 every time point of both demo motions converges at 20 "
+                 "particles per fibre, in 2-4 times fewer iterations, the answer a few mm from "
+                 "Hooke's (docs/solver-notes.md).",
                  choices=SPRING_ENERGIES, group="Method"),
         Property("WarmStart", "bool", False,
                  "Quasi-static: start from the last solution of this filter (its displacement "

@@ -10,9 +10,9 @@ from muscle_mss.core import model as S
 from muscle_mss.core import relaxation
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_CONTACT_WEIGHT,
+from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_CONTACT_WEIGHTS,
                                       DEFAULT_PENETRATION_TOLERANCE, DEFAULT_TOLERANCE,
-                                      METHOD_QUASI_STATIC, SolverSettings)
+                                      METHOD_QUASI_STATIC, SPRINGS_HOOKE, SolverSettings)
 from muscle_mss.filters import MSSCollisionSolver
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
@@ -106,7 +106,7 @@ def minimise_reference(model, bone, weight, tissue=None):
 def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     model, bone = chain_on_a_ball()
     prep = S.prepare(model)
-    weight = DEFAULT_CONTACT_WEIGHT * Q.preconditioner(model, prep).stiffest
+    weight = DEFAULT_CONTACT_WEIGHTS[SPRINGS_HOOKE] * Q.preconditioner(model, prep).stiffest
     result = Q.solve(model, *bone, prepared=prep, settings=quasi_static(
         tolerance=1e-9, iterations=5000, projection_passes=0))
     assert result.converged and result.residual[-1] < 1e-9

@@ -26,7 +26,7 @@ each sphere of an overlapping pair is pushed along the centre line by ``w`` time
 the whole push going to the free sphere when the other is fixed or a bone. Unlike the paper's
 response (the deepest pair of each other object) the sum over all pairs is continuously
 differentiable, so the minimisation converges where the paper's rule makes contacts chatter.
-``w`` is :attr:`~muscle_mss.core.settings.QuasiStaticSettings.contact_weight` times the largest sum of one particle's
+``w`` is :attr:`~muscle_mss.core.settings.QuasiStaticSettings.weight` times the largest sum of one particle's
 spring stiffnesses (260 g/s^2 for a lattice-26 particle at the Spring Builder's defaults). The
 penalty leaves an overlap of (contact force) / w at the minimum; the final collision passes of
 the paper method (:func:`muscle_mss.core.contacts.project`, against the solids when given)

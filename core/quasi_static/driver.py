@@ -89,7 +89,7 @@ def check_settings(settings: SolverSettings) -> None:
     if settings.quasi_static.springs not in SPRING_ENERGIES:
         raise MuscleMSSError(f"solver springs {settings.quasi_static.springs!r} is not one of "
                              f"{', '.join(SPRING_ENERGIES)}")
-    weight = settings.quasi_static.contact_weight
+    weight = settings.quasi_static.weight
     if not (weight > 0.0 and np.isfinite(weight)):
         raise MuscleMSSError(f"solver contact weight is {weight}; it must be "
                              "finite and positive")
@@ -145,7 +145,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         x[:, pre.free] = begin[prep.order][pre.free].T
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
-                              float(settings.quasi_static.contact_weight) * pre.stiffest,
+                              float(settings.quasi_static.weight) * pre.stiffest,
                               bone_solids, tissue_targets(model, prep.order, posed.T,
                                                           settings.tissue_along))
     outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
