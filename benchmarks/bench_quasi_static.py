@@ -149,10 +149,10 @@ def sweep_rows(model, bones, solids, prepared, args):
     return rows
 
 
-def walk_rows(scene, folder, args, flexed_time, n):
-    """Table 3: the motion at ``n`` particles per fibre, cold and warm (``args.walk_modes``),
-    and the two answers' distance at its most flexed pose (the time point nearest
-    ``flexed_time``; None with one mode)."""
+def walk_rows(name, scene, folder, args, flexed_time, n):
+    """Table 3: the motion of ``scene`` (called ``name``) at ``n`` particles per fibre, cold and
+    warm (``args.walk_modes``), and the two answers' distance at its most flexed pose (the time
+    point nearest ``flexed_time``; None with one mode)."""
     pipeline = build_pipeline(folder, {"ParticlesPerFibre": n})
     inputs = [workload(pipeline, float(t)) for t in scene.motion.times]
     prepared = prepare(inputs[0][0])
@@ -171,7 +171,7 @@ def walk_rows(scene, folder, args, flexed_time, n):
             last = (model.positions, result.positions)
             iterations.append(result.iterations)
             converged += int(result.converged)
-            print(f"  {scene} N={n} {mode} t={scene.motion.times[k]:.3f}: {result.iterations} "
+            print(f"  {name} N={n} {mode} t={scene.motion.times[k]:.3f}: {result.iterations} "
                   f"iterations, {seconds[-1]:.2f} s, converged {int(result.converged)}",
                   flush=True)
             if k == flexed:
@@ -205,7 +205,7 @@ def main(args):
                         print(table2[-1], flush=True)
         if args.walk_cap:
             for n in args.walk_sizes:
-                walks.append((name, *walk_rows(scene, folder, args, poses[-1][1], n)))
+                walks.append((name, *walk_rows(name, scene, folder, args, poses[-1][1], n)))
 
     lines = [
         "# Quasi-static solver with the connective tissue (both demo scenes)", "",
@@ -236,7 +236,8 @@ def main(args):
                   f"solve at ConnectiveTissue {args.sweep[0]:g}, mean / max mm; volume error "
                   "of the muscles' cages (the particles' boundary, not the MVC surface), "
                   "mean / max %.", "",
-                  "| scene | pose | ratio | iterations | seconds | converged | to untethered | "
+                  f"| scene | pose | ratio | iterations | seconds | converged | to ratio "
+                  f"{args.sweep[0]:g} | "
                   "cage volume error % | load |", "|---|---|---|---|---|---|---|---|---|"]
         for scene, label, ratio, it, sec, conv, dm, dx, vm, vx, load in table2:
             lines.append(f"| {scene} | {label} | {ratio:g} | {it} | {sec:.2f} | {yes[conv]} "
