@@ -11,12 +11,13 @@ its last step, the distance of its particles to a 10x tighter solve, to the solv
 tissue at the same cap and to the paper relaxation (500 iterations, no tissue), mean / max mm,
 and the tissue's share of each muscle's load (median / max %).
 Table 2, the ratio sweep (``--sweep``) at N = 20: iterations, seconds, converged, distance to
-the untethered solve and the volume error of the muscles' cages (mean / max %).
+the solve at the first ratio of the sweep and the volume error of the muscles' cages (mean /
+max %).
 Table 3, each scene's motion (thigh walk 21 time points, elbow 13; N ``--walk-sizes``,
-``--ratio``) solved in time order cold (each from its posed state) and warm (from the last solution carried by the
-pose change): seconds, iterations, converged, and how far the two answers are apart at the
-most flexed pose.
-Machine and load in the tables; written to benchmarks/results/quasi_static.md.
+``--ratio``) solved in time order cold (each from its posed state) and warm (from the last
+solution carried by the pose change): seconds, iterations, converged, and how far the two
+answers are apart at the most flexed pose.
+Machine and load in the tables; written to benchmarks/results/ (``--out``).
 
     python benchmarks/bench_quasi_static.py [--scenes thigh arm] [--sizes 20 80]
         [--ratio 0.01] [--sweep 0 0.001 0.003 0.01 0.03] [--cap 1500] [--walk-cap 300]
@@ -213,8 +214,8 @@ def main(args):
         "each row is given."]
     table1_lines = [
         "", f"Table 1: Springs {args.springs}, contact weight "
-        f"{chosen(args).quasi_static.weight:g}, "
-        f"ConnectiveTissue {args.ratio:g} (TissueAlongFibres {DEFAULT_TISSUE_ALONG:g}), Tolerance {DEFAULT_TOLERANCE} mm, cap "
+        f"{chosen(args).quasi_static.weight:g}, ConnectiveTissue {args.ratio:g} "
+        f"(TissueAlongFibres {DEFAULT_TISSUE_ALONG:g}), Tolerance {DEFAULT_TOLERANCE} mm, cap "
         f"{args.cap} iterations, bones as solids. Tighter: Tolerance "
         f"{DEFAULT_TOLERANCE / 10} mm, cap {3 * args.cap}. No tissue: the same solve at "
         "ConnectiveTissue 0. Paper: the paper relaxation, 500 iterations, no tissue. "
