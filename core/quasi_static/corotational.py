@@ -34,7 +34,10 @@ import numpy as np
 from numba import njit, prange
 
 # Newton steps at most for the largest eigenvalue of a particle's 4x4 fit matrix (from the
-# upper bound sqrt(3) |A|, quadratic once near; measured on the thigh's flexed pose: ...).
+# upper bound sqrt(3) |A|_F, quadratic once near). Measured on the demo thigh's most flexed pose
+# and the elbow's 130 degrees (N = 20, posed and solved): 11-12 steps on average; about 1 % of
+# the particles reach the cap (fits of nearly rank one, the two largest eigenvalues within 2e-5
+# of each other, where Newton converges linearly), their eigenvalue still within 1e-11.
 NEWTON_STEPS = 60
 
 CorotationalState = namedtuple("CorotationalState", ("rest_vectors", "frame"))
@@ -46,8 +49,7 @@ space, after an evaluation each particle's best-fit rotation matrix row by row."
 def corotational_state(rest_positions, ends, rest_length) -> CorotationalState:
     """The co-rotational term's state for the springs ``ends`` (S, 2) (solver order) with rest
     lengths ``rest_length`` (S,) mm, their directions from ``rest_positions`` (n, 3) mm (solver
-    order). A spring whose ends coincide at rest keeps a zero rest
-    vector."""
+    order). A spring whose ends coincide at rest keeps a zero rest vector."""
     rest_positions = np.asarray(rest_positions, dtype=np.float64)
     vectors = rest_positions[ends[:, 1]] - rest_positions[ends[:, 0]]
     length = np.linalg.norm(vectors, axis=1)
