@@ -51,7 +51,9 @@ iterations), refactorising ``A`` with each iteration's contacts cost 0.1 s per i
 N = 20, and Newton steps solved by conjugate gradients preconditioned with ``A`` needed 80
 products each (74 s for the walking pose against 12.6 s). A backtracking line search
 (Armijo) makes every iteration lower the energy, and a step moves no particle farther than the
-largest muscle sphere radius (a longer step could jump over a contact). Contacts are found
+largest muscle sphere radius (a longer step could jump over a contact); its first trial is at
+most :data:`~.driver.STEP_GROWTH` times the last accepted fraction of the step (where muscles
+touch, the full step overshoots). Contacts are found
 from candidate lists (spheres of other objects within their radii plus a skin,
 :func:`muscle_mss.core.spatial_hash.candidate_lists`) rebuilt whenever a sphere has moved half
 the skin since: the energy is that of all overlapping pairs.
