@@ -51,6 +51,12 @@ class MSSModel:
     rest_positions: np.ndarray | None = None
     in_bone_at_rest: np.ndarray | None = None
 
+    def rest_pose(self) -> np.ndarray:
+        """(n, 3) float64 mm: ``rest_positions``, or ``positions`` where the rest pose is
+        omitted."""
+        rest = self.positions if self.rest_positions is None else self.rest_positions
+        return np.asarray(rest, dtype=np.float64).reshape(-1, 3)
+
 
 @dataclass
 class SolveResult:
@@ -144,8 +150,7 @@ def volume_cages(model: MSSModel, rank) -> VolumeCages:
     order, with its rest volume. A muscle whose boundary particles span no solid (a sheet, a
     line: no volume to keep) gets no cage."""
     offsets = np.asarray(model.offsets, dtype=np.int64)
-    rest = np.asarray(model.positions if model.rest_positions is None else model.rest_positions,
-                      dtype=np.float64).reshape(-1, 3)
+    rest = model.rest_pose()
     triangles, counts, volumes = [], [], []
     for m, name in enumerate(model.names):
         lo, hi = offsets[m], offsets[m + 1]

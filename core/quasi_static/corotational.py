@@ -221,8 +221,7 @@ def spring_tension(model, positions) -> np.ndarray:
     x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     ends = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
     k = np.asarray(model.stiffness, dtype=np.float64)
-    rest = model.positions if model.rest_positions is None else model.rest_positions
-    state = corotational_state(np.asarray(rest, dtype=np.float64).reshape(-1, 3), ends,
+    state = corotational_state(model.rest_pose(), ends,
                                np.asarray(model.rest_length, dtype=np.float64))
     d = x[ends[:, 1]] - x[ends[:, 0]]
     outer = (k[:, None, None] * d[:, :, None] * state.rest_vectors[:, None, :]).reshape(-1, 9)

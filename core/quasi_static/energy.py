@@ -227,9 +227,8 @@ class ContactEnergy:
         # co-rotational springs: their own term, the Hooke term's springs left out
         self.corotational = None
         if settings.quasi_static.springs == SPRINGS_COROTATIONAL:
-            rest = model.positions if model.rest_positions is None else model.rest_positions
-            rest = np.asarray(rest, dtype=np.float64).reshape(-1, 3)[prep.order]
-            self.corotational = corotational_state(rest, self.springs[0], self.springs[1])
+            self.corotational = corotational_state(model.rest_pose()[prep.order],
+                                                   self.springs[0], self.springs[1])
             self.hooke_ptr = np.zeros_like(self.springs[3])
         else:
             self.hooke_ptr = self.springs[3]
