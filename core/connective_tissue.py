@@ -32,10 +32,11 @@ import numpy as np
 from numba import njit, prange
 
 from .errors import MuscleMSSError
+from .model import REFERENCE_PARTICLES
 from .mss import along_part
 
-REFERENCE_PARTICLES = 20
-"""Particles per fibre at which ``k_i`` is ``ratio`` times the spring stiffness."""
+__all__ = ["REFERENCE_PARTICLES", "add_tissue_energy", "check_along", "tissue_share",
+           "tissue_stiffness", "tissue_targets"]
 
 
 def tissue_stiffness(model, order, fixed, ratio: float) -> np.ndarray:
@@ -54,11 +55,8 @@ def tissue_stiffness(model, order, fixed, ratio: float) -> np.ndarray:
                          minlength=m_count)
     counts = np.bincount(spring_muscle, minlength=m_count)
     mean_spring = totals / np.maximum(counts, 1)
-    index = np.asarray(model.fibre_index, dtype=np.int64).ravel()
     muscle = np.repeat(np.arange(m_count), np.diff(offsets))
-    per_fibre = np.zeros(m_count, dtype=np.int64)
-    np.maximum.at(per_fibre, muscle, index + 1)
-    scale = ((REFERENCE_PARTICLES - 1.0) / np.maximum(per_fibre - 1, 1)) ** 2
+    scale = model.resolution_scale() ** 2
     stiffness = (float(ratio) * mean_spring * scale)[muscle][order]
     stiffness[np.asarray(fixed, dtype=bool)] = 0.0
     return stiffness

@@ -19,6 +19,11 @@ from .settings import METHOD_RELAXATION, TERMINATION_ITERATIONS
 from .volume import signed_volume
 
 
+REFERENCE_PARTICLES = 20
+"""Particles per fibre at which the resolution-dependent stiffnesses (the connective tissue's,
+the quasi-static contacts') take their nominal values (:meth:`MSSModel.resolution_scale`)."""
+
+
 @dataclass
 class MSSModel:
     """The posed mass-spring model of all muscles (arrays concatenated muscle after muscle).
@@ -56,6 +61,19 @@ class MSSModel:
         omitted."""
         rest = self.positions if self.rest_positions is None else self.rest_positions
         return np.asarray(rest, dtype=np.float64).reshape(-1, 3)
+
+    def resolution_scale(self) -> np.ndarray:
+        """(M,): ``(REFERENCE_PARTICLES - 1) / (N_m - 1)`` for each muscle of ``N_m``
+        particles per fibre (1 at :data:`REFERENCE_PARTICLES`). A fibre's ``N_m - 1`` springs
+        act in series, so its stiffness falls as ``1 / (N_m - 1)``, while a per-particle term
+        acts ``N_m`` times along it: such a term times this scale keeps its force per length
+        of fibre, and times its square its balance against the springs."""
+        offsets = np.asarray(self.offsets, dtype=np.int64)
+        index = np.asarray(self.fibre_index, dtype=np.int64).ravel()
+        per_fibre = np.zeros(len(offsets) - 1, dtype=np.int64)
+        np.maximum.at(per_fibre, np.repeat(np.arange(len(offsets) - 1), np.diff(offsets)),
+                      index + 1)
+        return (REFERENCE_PARTICLES - 1.0) / np.maximum(per_fibre - 1, 1)
 
 
 @dataclass

@@ -11,12 +11,13 @@ from muscle_mss.core import solver
 from muscle_mss.core.connective_tissue import (REFERENCE_PARTICLES, tissue_share,
                                                tissue_stiffness)
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_CONTACT_WEIGHTS,
-                                      DEFAULT_TISSUE_ALONG, METHOD_QUASI_STATIC, METHOD_RELAXATION,
-                                      SPRINGS_HOOKE, TERMINATION_THRESHOLD, SolverSettings)
+from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_TISSUE_ALONG,
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION,
+                                      TERMINATION_THRESHOLD, SolverSettings)
 
 from test_mss import lattice
-from test_quasi_static import chain_on_a_ball, minimise_reference, reference_forces
+from test_quasi_static import (chain_contact_stiffness, chain_on_a_ball, minimise_reference,
+                               reference_forces)
 
 
 def settings(method=METHOD_QUASI_STATIC, **values) -> SolverSettings:
@@ -64,7 +65,7 @@ def test_quasi_static_matches_scipy_minimiser_of_the_energy_with_tissue():
     model, bone = chain_on_a_ball()
     ratio = 0.05
     prep = S.prepare(model)
-    weight = DEFAULT_CONTACT_WEIGHTS[SPRINGS_HOOKE] * Q.preconditioner(model, prep).stiffest
+    weight = chain_contact_stiffness(model, prep)
     result = Q.solve(model, *bone, prepared=prep, settings=settings(    # the isotropic energy
         tolerance=1e-9, iterations=5000, projection_passes=0, connective_tissue=ratio,
         tissue_along=1.0))

@@ -67,6 +67,14 @@ def chain_on_a_ball():
     return model, bone
 
 
+def chain_contact_stiffness(model, prep) -> float:
+    """The contact stiffness of :func:`chain_on_a_ball`'s particles, written out: the Hooke
+    springs' contact weight times the stiffest particle's spring sum, times 19 / 5 for its 6
+    particles per fibre (the reference resolution is 20)."""
+    stiffest = Q.preconditioner(model, prep).stiffest
+    return DEFAULT_CONTACT_WEIGHTS[SPRINGS_HOOKE] * stiffest * 19.0 / 5.0
+
+
 def minimise_reference(model, bone, weight, tissue=None):
     """The same energy minimised by scipy (L-BFGS-B): springs plus the contact penalty
     ``weight / 2 * penetration^2`` of each free sphere against the bone sphere, plus the
@@ -106,7 +114,7 @@ def minimise_reference(model, bone, weight, tissue=None):
 def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     model, bone = chain_on_a_ball()
     prep = S.prepare(model)
-    weight = DEFAULT_CONTACT_WEIGHTS[SPRINGS_HOOKE] * Q.preconditioner(model, prep).stiffest
+    weight = chain_contact_stiffness(model, prep)
     result = Q.solve(model, *bone, prepared=prep, settings=quasi_static(
         tolerance=1e-9, iterations=5000, projection_passes=0))
     assert result.converged and result.residual[-1] < 1e-9
@@ -114,6 +122,25 @@ def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     expected = minimise_reference(model, bone, weight)
     assert np.abs(result.positions - model.positions).max() > 0.5      # it did bend
     np.testing.assert_allclose(result.positions, expected, atol=1e-5)
+
+
+def test_contact_stiffness_keeps_the_force_per_length_of_fibre_at_every_resolution():
+    """Twice the fibre steps (39 particles per fibre against the reference 20): each particle's
+    contact stiffness halves, so a patch pressed as deep pushes as hard per mm of fibre."""
+    from test_connective_tissue import slab
+    settings = quasi_static()
+    weights = []
+    for per_fibre in (20, 39):
+        model = slab(per_fibre)
+        prep = S.prepare(model)
+        pre = Q.preconditioner(model, prep)
+        w = Q.driver.contact_stiffness(model, prep, pre, settings)
+        assert w.shape == (len(model.fixed),) and np.all(w == w[0])
+        weights.append((w[0], pre.stiffest))
+    (coarse, stiffest), (fine, fine_stiffest) = weights
+    assert stiffest == fine_stiffest
+    assert coarse == settings.quasi_static.weight * stiffest
+    assert fine == pytest.approx(coarse / 2.0, rel=1e-12)
 
 
 @pytest.fixture(scope="module")

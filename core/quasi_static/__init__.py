@@ -27,7 +27,10 @@ the whole push going to the free sphere when the other is fixed or a bone. Unlik
 response (the deepest pair of each other object) the sum over all pairs is continuously
 differentiable, so the minimisation converges where the paper's rule makes contacts chatter.
 ``w`` is :attr:`~muscle_mss.core.settings.QuasiStaticSettings.weight` times the largest sum of one particle's
-spring stiffnesses (260 g/s^2 for a lattice-26 particle at the Spring Builder's defaults). The
+spring stiffnesses (260 g/s^2 for a lattice-26 particle at the Spring Builder's defaults), times
+the particle's muscle's resolution scale (19 / (N - 1) at N particles per fibre; a pair takes the
+mean of its two, :func:`~.driver.contact_stiffness`), so that a finer lattice's contacts press
+as hard per length of fibre. The
 penalty leaves an overlap of (contact force) / w at the minimum; the final collision passes of
 the paper method (:func:`muscle_mss.core.contacts.project`, against the solids when given)
 remove it, after the free spheres are pushed out of the bone solids

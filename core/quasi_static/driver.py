@@ -107,6 +107,17 @@ def check_settings(settings: SolverSettings) -> None:
                              "more")
 
 
+def contact_stiffness(model: MSSModel, prep: PreparedModel, pre, settings) -> np.ndarray:
+    """(n,) g/s^2, solver order: each particle's contact stiffness ``w``, the contact weight
+    times the stiffest particle's spring sum times its muscle's
+    :meth:`~muscle_mss.core.model.MSSModel.resolution_scale`. A contact presses on the
+    particles of a patch, and a finer lattice has more of them along each fibre and softer
+    fibres: with one ``w`` for every resolution the full demo thigh's most flexed pose at 80
+    particles per fibre took 1,446 iterations (134 without contacts), with the scale 512."""
+    scale = model.resolution_scale()[prep.muscle]
+    return float(settings.quasi_static.weight) * pre.stiffest * scale
+
+
 def push_out_of_solids(x, points, radius, solids: BoneSolids) -> None:
     """Move the particles ``points`` (k,) of ``x`` (3, n) out to their ``radius`` (k,) mm plus
     the clearance from each bone solid (the penalty leaves an overlap of contact force / w at
@@ -154,8 +165,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         x[:, pre.free] = begin[prep.order][pre.free].T
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
-                              float(settings.quasi_static.weight) * pre.stiffest,
-                              bone_solids, tissue_targets(model, prep.order, posed.T,
+                              contact_stiffness(model, prep, pre, settings), bone_solids, tissue_targets(model, prep.order, posed.T,
                                                           settings.tissue_along))
     outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
     x[:, pre.free] = outcome.position.T

@@ -71,7 +71,8 @@ def sphere_contact_energy(x, gradient, weight, particle, radius, fixed, mm_begin
               deepest):
     """The contact penalty of every muscle sphere against the spheres in its candidate lists
     (``mm_*`` other muscles' spheres, ``mb_*`` bone spheres, CSR as
-    :func:`~muscle_mss.core.spatial_hash.candidate_lists`): its gradient added to ``gradient``
+    :func:`~muscle_mss.core.spatial_hash.candidate_lists`), ``weight`` (n,) g/s^2 the contact
+    stiffness of each particle (a pair's the mean of its two): its gradient added to ``gradient``
     (3, n) at the sphere's particle (a free sphere only), per sphere the energy of its pairs
     (a muscle pair counted by its lower sphere) into ``sphere_energy`` (s,), the overlapping
     pairs into ``overlaps`` (s, 2) (muscle, bone; a muscle pair by its lower sphere) and the
@@ -92,13 +93,14 @@ def sphere_contact_energy(x, gradient, weight, particle, radius, fixed, mm_begin
             pen = radius[i] + radius[j] - d
             if pen > 0.0 and not (fixed[i] and fixed[j]):
                 worst = max(worst, pen)
+                w = 0.5 * (weight[p] + weight[q])
                 if j > i:
-                    e += 0.5 * weight * pen * pen
+                    e += 0.5 * w * pen * pen
                     n_mm += 1
                 if d > 0.0:
-                    gx -= weight * pen * dx / d
-                    gy -= weight * pen * dy / d
-                    gz -= weight * pen * dz / d
+                    gx -= w * pen * dx / d
+                    gy -= w * pen * dy / d
+                    gz -= w * pen * dz / d
         if not fixed[i]:
             for k in range(mb_begin[i], mb_end[i]):
                 j = mb_idx[k]
@@ -108,13 +110,13 @@ def sphere_contact_energy(x, gradient, weight, particle, radius, fixed, mm_begin
                 d = np.sqrt(dx * dx + dy * dy + dz * dz)
                 pen = radius[i] + bone_radius[j] - d
                 if pen > 0.0:
-                    e += 0.5 * weight * pen * pen
+                    e += 0.5 * weight[p] * pen * pen
                     n_mb += 1
                     worst = max(worst, pen)
                     if d > 0.0:
-                        gx -= weight * pen * dx / d
-                        gy -= weight * pen * dy / d
-                        gz -= weight * pen * dz / d
+                        gx -= weight[p] * pen * dx / d
+                        gy -= weight[p] * pen * dy / d
+                        gz -= weight[p] * pen * dz / d
         if not fixed[i]:
             gradient[0, p] += gx
             gradient[1, p] += gy
@@ -128,8 +130,9 @@ def sphere_contact_energy(x, gradient, weight, particle, radius, fixed, mm_begin
 @njit(cache=True, parallel=True)
 def solid_contact_energy(x, gradient, weight, particle, radius, near_bones, clearance,
                          transforms, grid, sphere_energy, overlaps, deepest):
-    """The contact penalty of free muscle spheres against the bones as solids: ``w / 2
-    max(0, r_i + clearance_b - d_b(c_i))^2`` per bone ``b`` that ``near_bones[i, b]`` marks
+    """The contact penalty of free muscle spheres against the bones as solids: ``w_i / 2
+    max(0, r_i + clearance_b - d_b(c_i))^2`` (``w`` = ``weight`` (n,) g/s^2 at the sphere's
+    particle) per bone ``b`` that ``near_bones[i, b]`` marks
     (the others are out of reach, :func:`near_solids`), ``d_b`` its signed distance
     (continuously differentiable, :mod:`muscle_mss.core.smooth_distance`, so that no particle
     rests on a kink of the energy; ``grid`` the fields sampled in the bones' rest
@@ -149,13 +152,13 @@ def solid_contact_energy(x, gradient, weight, particle, radius, near_bones, clea
             value, hx, hy, hz = smooth_sample(b, qx, qy, qz, grid)
             pen = radius[i] + clearance[b] - value
             if pen > 0.0:
-                e += 0.5 * weight * pen * pen
+                e += 0.5 * weight[p] * pen * pen
                 count += 1
                 worst = max(worst, pen)
                 m = transforms[b]
-                gx -= weight * pen * (m[0, 0] * hx + m[0, 1] * hy + m[0, 2] * hz)
-                gy -= weight * pen * (m[1, 0] * hx + m[1, 1] * hy + m[1, 2] * hz)
-                gz -= weight * pen * (m[2, 0] * hx + m[2, 1] * hy + m[2, 2] * hz)
+                gx -= weight[p] * pen * (m[0, 0] * hx + m[0, 1] * hy + m[0, 2] * hz)
+                gy -= weight[p] * pen * (m[1, 0] * hx + m[1, 1] * hy + m[1, 2] * hz)
+                gz -= weight[p] * pen * (m[2, 0] * hx + m[2, 1] * hy + m[2, 2] * hz)
         gradient[0, p] += gx
         gradient[1, p] += gy
         gradient[2, p] += gz
