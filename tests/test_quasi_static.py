@@ -184,6 +184,18 @@ def test_equilibrium_net_force_on_free_particles_is_below_the_tolerance_equivale
     assert np.array_equal(result.positions[model.fixed], model.positions[model.fixed])
 
 
+def test_a_tolerance_finer_than_the_energy_can_see_stops_as_stalled_not_at_the_cap(stretched):
+    """At 1e-14 mm no step can measurably lower the energy before the plain step is within the
+    tolerance: the solve stops after STALLED_STEPS such plain steps, unconverged, and where it
+    stopped is the answer of a tolerance it can meet."""
+    tight = Q.solve(stretched, settings=quasi_static(tolerance=1e-14, iterations=5000))
+    assert not tight.converged and tight.stopped_by == Q.driver.TERMINATION_STALLED
+    assert tight.iterations < 1000
+    met = Q.solve(stretched, settings=quasi_static(tolerance=1e-6, iterations=5000))
+    assert met.converged
+    np.testing.assert_allclose(tight.positions, met.positions, atol=1e-5)
+
+
 def test_model_at_rest_stays_at_rest(stretched):
     model = stretched
     rest = S.MSSModel(**{**model.__dict__, "positions": model.rest_positions.copy()})

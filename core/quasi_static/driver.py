@@ -36,6 +36,11 @@ STEP_GROWTH = 1.5
 # Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
 # fraction of the energy is rounding, not an increase (the last steps of a tight solve).
 ENERGY_ROUNDING = 1e-13
+# Steps in a row that lower the energy by no more than its rounding before the solve stops as
+# stalled (not converged): the energy can no longer tell a better point, and the plain
+# preconditioned step still moves a particle more than the tolerance (else it has converged).
+STALLED_STEPS = 50
+TERMINATION_STALLED = "energy rounding"
 # Iterations between updates of the volume gradient in the initial inverse Hessian (each update
 # solves the spring matrix for it: three more columns). An initial inverse Hessian held for a
 # few iterations is still positive definite; the volume term's stiff mode changes slowly.
@@ -193,6 +198,7 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
     history = LBFGSHistory(int(settings.quasi_static.history), len(pre.free))
     done, converged, stopped_by = 0, False, TERMINATION_ITERATIONS
     accepted = 1.0                  # the last accepted step fraction
+    stalled = 0     # steps in a row that lowered the energy by no more than its rounding
     while done < cap:
         record.muscle_pairs[done], record.bone_pairs[done], record.max_penetration[done] = \
             energy_of.contact_figures()
@@ -200,7 +206,8 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
         tick = time.perf_counter()
         if done % VOLUME_REFRESH == 0:
             h0 = InitialInverseHessian(pre, free_muscle, volume_stiffness, volume_gradient)
-        step, largest, slope = _step(gradient, history, h0, record.residual, done, tolerance)
+        step, largest, slope = _step(gradient, history, h0, record.residual, done, tolerance,
+                                     stalled > 0)
         solve_seconds += time.perf_counter() - tick
         done += 1
         if largest <= tolerance:
@@ -218,6 +225,7 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
         moved = trial - position
         change = trial_gradient - gradient
         curvature = inner(moved, change)
+        stalled = stalled + 1 if energy - trial_energy <= ENERGY_ROUNDING * abs(energy) else 0
         if settings.quasi_static.history and curvature > 1e-12 * np.sqrt(
                 inner(moved, moved) * inner(change, change)):
             history.add(moved, change, 1.0 / curvature)
@@ -226,6 +234,9 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
         position, energy, gradient, volume_gradient = (trial, trial_energy, trial_gradient,
                                                        trial_volume)
         record.seconds[done - 1] = time.perf_counter() - started
+        if stalled >= STALLED_STEPS:
+            stopped_by = TERMINATION_STALLED
+            break
         if budget is not None and record.seconds[done - 1] >= budget:
             stopped_by = TERMINATION_BUDGET
             break
@@ -234,12 +245,20 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
     return LoopOutcome(record, done, stopped_by, converged, solve_seconds, position)
 
 
-def _step(gradient, history, h0, residual, done, tolerance):
+def _step(gradient, history, h0, residual, done, tolerance, at_rounding=False):
     """The quasi-Newton step of iteration ``done``: ``(step (f, 3) mm, its largest particle
     move mm, slope of the energy along it)``, its largest move recorded in ``residual``. The
     step counts as within the tolerance only once the distance still to go is too, and when
     the plain preconditioned step (which bounds the force) is; a step that does not descend
-    is replaced by the plain one (the history dropped)."""
+    is replaced by the plain one (the history dropped). ``at_rounding``: the last step lowered
+    the energy by no more than its rounding; then the plain step within the tolerance is
+    enough (the force is bounded and the energy flat: the distance still to go, estimated from
+    steps that no longer lower it, is noise)."""
+    if at_rounding:
+        plain = -h0(gradient)
+        if largest_move(plain) <= tolerance:
+            residual[done] = largest_move(plain)
+            return plain, residual[done], inner(gradient, plain)
     step = direction(gradient, history, h0)
     largest = largest_move(step)
     if not np.isfinite(largest):
