@@ -294,16 +294,17 @@ def candidate_lists(query, q_radius, q_object, table, skin):
     """For every query sphere, the target spheres of another object within
     ``r_i + r_j + skin`` mm: ``(begin (nq,), end (nq,), idx)``, sphere ``i``'s list being
     ``idx[begin[i]:end[i]]`` in increasing index order; ``table`` from :func:`grid_table` of
-    the targets."""
+    the targets; ``idx`` int32, as the sphere lists' (one type for :func:`scan_grid`)."""
     nq = query.shape[1]
     counts = np.zeros(nq + 1, dtype=np.int64)
     none = np.empty(0, dtype=np.int64)
+    no_room = np.empty(0, dtype=np.int32)
     for i in prange(nq):
         counts[i + 1] = scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0,
-                                  none, np.int64(0), np.int64(0), none, np.bool_(False))
+                                  no_room, np.int64(0), np.int64(0), none, np.bool_(False))
     for i in range(nq):
         counts[i + 1] += counts[i]
-    idx = np.empty(counts[nq], dtype=np.int64)
+    idx = np.empty(counts[nq], dtype=np.int32)
     for i in prange(nq):
         scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0, idx, counts[i],
                   counts[i + 1] - counts[i], counts, np.bool_(False))

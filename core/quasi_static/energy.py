@@ -269,7 +269,7 @@ class ContactEnergy:
                 spheres.bone_centres, spheres.bone_radius,
                 spatial_hash.bone_cell(spheres, self.skin), spheres.bone + spheres.n_muscles)
         none = np.zeros(ns, dtype=np.int64)
-        self.mm = self.mb = (none, none, np.zeros(0, dtype=np.int64))
+        self.mm = self.mb = (none, none, np.zeros(0, dtype=np.int32))
         self.lists_built = False
         self.rebuilds = 0
         self.seconds = np.zeros(3)       # elastic, muscle contacts, bone contacts
