@@ -22,6 +22,8 @@ bitwise, so a model that nowhere shortens is solved exactly as without the rule.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from .model import MSSModel
@@ -80,6 +82,16 @@ def shortened_rest_lengths(model: MSSModel) -> np.ndarray:
     """(S,) mm: the springs' rest lengths under the rule of the module docstring for the pose
     ``model.positions``; ``model.rest_length`` itself (bitwise) where both ends' fibres do not
     shorten."""
+    return shortened_springs(model).rest_length
+
+
+def shortened_springs(model: MSSModel) -> MSSModel:
+    """``model`` with the rest lengths of :func:`shortened_rest_lengths` and the rest vectors
+    (``MSSModel.rest_vectors``) of that rest shape: each shortening spring's vector contracted
+    by s along the fibres' direction and widened by 1 / sqrt(s) across it, then scaled to the
+    new rest length (the co-rotational springs keep the shape, not only the lengths; with the
+    rest pose's directions a slab brought 30 % closer shortened its fibres by 12 %). ``model``
+    itself where no fibre shortens."""
     rest_length = np.asarray(model.rest_length, dtype=np.float64)
     factor = shortening_factors(model)
     springs = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
@@ -87,15 +99,20 @@ def shortened_rest_lengths(model: MSSModel) -> np.ndarray:
     s = 0.5 * (factor[i] + factor[j])
     shortening = s < 1.0
     if not shortening.any():
-        return rest_length
+        return model
     i, j, s = i[shortening], j[shortening], s[shortening]
     tangents = fibre_tangents(model)
     direction = tangents[i] + tangents[j]
     direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
     rest = np.asarray(model.rest_positions, dtype=np.float64).reshape(-1, 3)
     vector = rest[j] - rest[i]
-    cos2 = (np.einsum("ij,ij->i", vector, direction)
-            / np.maximum(np.linalg.norm(vector, axis=1), 1e-300)) ** 2
+    along = np.einsum("ij,ij->i", vector, direction)
+    cos2 = (along / np.maximum(np.linalg.norm(vector, axis=1), 1e-300)) ** 2
     shortened = rest_length.copy()
     shortened[shortening] *= np.sqrt(cos2 * s * s + (1.0 - cos2) / s)
-    return shortened
+    vectors = model.spring_rest_vectors()
+    shaped = vector / np.sqrt(s)[:, None] + ((s - 1.0 / np.sqrt(s)) * along)[:, None] * direction
+    size = np.linalg.norm(shaped, axis=1)
+    vectors[shortening] = shaped * np.divide(shortened[shortening], size, out=np.zeros_like(size),
+                                             where=size > 0.0)[:, None]
+    return dataclasses.replace(model, rest_length=shortened, rest_vectors=vectors)

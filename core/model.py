@@ -36,7 +36,10 @@ class MSSModel:
     the rest pose whose cage volumes the volume force keeps (omitted: ``positions``);
     ``in_bone_at_rest`` (n,) bool, the particles inside a bone in the rest pose (the bones as
     solids leave them there; omitted: not known, and only the particles with a sphere are
-    kept out of the solids).
+    kept out of the solids); ``rest_vectors`` (S, 3) mm, each spring's vector from its first
+    particle to its second in the springs' rest shape where that is not the rest pose
+    (:mod:`~muscle_mss.core.fibre_shortening`'s shortened fibres; omitted:
+    :meth:`spring_rest_vectors`).
     """
 
     names: list
@@ -55,6 +58,22 @@ class MSSModel:
     fibre_grid: np.ndarray | None = None
     rest_positions: np.ndarray | None = None
     in_bone_at_rest: np.ndarray | None = None
+    rest_vectors: np.ndarray | None = None
+
+    def spring_rest_vectors(self) -> np.ndarray:
+        """(S, 3) float64 mm: each spring's rest vector, ``rest_vectors``, or the rest pose's
+        vector from its first particle to its second scaled to the rest length (a spring whose
+        ends coincide at rest: zero). The co-rotational springs keep it in their particles'
+        rotated frames."""
+        if self.rest_vectors is not None:
+            return np.asarray(self.rest_vectors, dtype=np.float64).reshape(-1, 3)
+        rest = self.rest_pose()
+        ends = np.asarray(self.springs, dtype=np.int64).reshape(-1, 2)
+        vectors = rest[ends[:, 1]] - rest[ends[:, 0]]
+        length = np.linalg.norm(vectors, axis=1)
+        scale = np.divide(np.asarray(self.rest_length, dtype=np.float64), length,
+                          out=np.zeros_like(length), where=length > 0.0)
+        return vectors * scale[:, None]
 
     def rest_pose(self) -> np.ndarray:
         """(n, 3) float64 mm: ``rest_positions``, or ``positions`` where the rest pose is

@@ -65,7 +65,7 @@ from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.exact_bone_distance import particles_out_of_bones
-from muscle_mss.core.fibre_shortening import shortened_rest_lengths
+from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (
     DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE,
     DEFAULT_BVH_MIN_PRIMITIVES, DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS,
@@ -309,7 +309,7 @@ class MSSCollisionSolver(MuscleFilter):
         model = self._posed_model([name for name, _ in blocks], parts, identities)
         if self.value("FibreShortening"):
             # the rest lengths follow the pose: the spring layout is prepared for each pose
-            model = dataclasses.replace(model, rest_length=shortened_rest_lengths(model))
+            model = shortened_springs(model)
             identities = None
         bones, solids = (None, None, None), None
         if self.choice("BoneContact") != BONE_CONTACT_SOLID:
@@ -455,7 +455,8 @@ class MSSCollisionSolver(MuscleFilter):
                       model.fibre_id, model.fibre_index, model.rest_positions):
             digest.update(np.ascontiguousarray(array).tobytes())
         for label, optional in ((b"grid", model.fibre_grid),
-                                (b"in bone", model.in_bone_at_rest)):
+                                (b"in bone", model.in_bone_at_rest),
+                                (b"rest vectors", model.rest_vectors)):
             if optional is not None:
                 digest.update(label + np.ascontiguousarray(optional).tobytes())
         key = digest.hexdigest()

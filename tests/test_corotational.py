@@ -61,7 +61,9 @@ def reference_energy(x, rest_positions, springs, rest_length, stiffness):
 def kernel_energy(x, rest_positions, springs, rest_length, stiffness):
     """The kernel's energy and gradient (n, 3) for one muscle holding every particle."""
     n = len(x)
-    state = corotational_state(rest_positions, springs, rest_length)
+    vectors = rest_positions[springs[:, 1]] - rest_positions[springs[:, 0]]
+    vectors *= (rest_length / np.linalg.norm(vectors, axis=1))[:, None]
+    state = corotational_state(vectors, n)
     gradient, energy = np.zeros((3, n)), np.zeros(1)
     add_corotational_energy(np.ascontiguousarray(x.T), gradient, energy, springs, stiffness,
                             np.array([0, len(springs)]), np.array([0, n]), state)

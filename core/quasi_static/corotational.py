@@ -46,16 +46,12 @@ mm each spring's ``D`` (in the order of the quasi-static spring table); ``frame`
 space, after an evaluation each particle's best-fit rotation matrix row by row."""
 
 
-def corotational_state(rest_positions, ends, rest_length) -> CorotationalState:
-    """The co-rotational term's state for the springs ``ends`` (S, 2) (solver order) with rest
-    lengths ``rest_length`` (S,) mm, their directions from ``rest_positions`` (n, 3) mm (solver
-    order). A spring whose ends coincide at rest keeps a zero rest vector."""
-    rest_positions = np.asarray(rest_positions, dtype=np.float64)
-    vectors = rest_positions[ends[:, 1]] - rest_positions[ends[:, 0]]
-    length = np.linalg.norm(vectors, axis=1)
-    scale = np.divide(rest_length, length, out=np.zeros_like(length), where=length > 0.0)
-    return CorotationalState(np.ascontiguousarray(vectors * scale[:, None]),
-                             np.zeros((len(rest_positions), 9)))
+def corotational_state(rest_vectors, n: int) -> CorotationalState:
+    """The co-rotational term's state for springs of rest vectors ``rest_vectors`` (S, 3) mm
+    (:meth:`~muscle_mss.core.model.MSSModel.spring_rest_vectors`, in the order of the springs
+    it is used with) between ``n`` particles."""
+    return CorotationalState(np.ascontiguousarray(rest_vectors, dtype=np.float64),
+                             np.zeros((n, 9)))
 
 
 @njit(cache=True, inline="always")
@@ -221,8 +217,7 @@ def spring_tension(model, positions) -> np.ndarray:
     x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     ends = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
     k = np.asarray(model.stiffness, dtype=np.float64)
-    state = corotational_state(model.rest_pose(), ends,
-                               np.asarray(model.rest_length, dtype=np.float64))
+    state = corotational_state(model.spring_rest_vectors(), len(x))
     d = x[ends[:, 1]] - x[ends[:, 0]]
     outer = (k[:, None, None] * d[:, :, None] * state.rest_vectors[:, None, :]).reshape(-1, 9)
     frame = state.frame

@@ -19,7 +19,7 @@ from ..smooth_distance import smooth_sample
 from ..settings import SPRINGS_COROTATIONAL
 from ..solid_contacts import solid_points
 from .corotational import add_corotational_energy, corotational_state
-from .preconditioner import Preconditioner, model_springs
+from .preconditioner import Preconditioner, model_springs, spring_order
 
 # Contact list skin, times the mean muscle sphere radius (the spatial hash's own lists use
 # spatial_hash.SKIN_FRACTION).
@@ -230,8 +230,8 @@ class ContactEnergy:
         # co-rotational springs: their own term, the Hooke term's springs left out
         self.corotational = None
         if settings.quasi_static.springs == SPRINGS_COROTATIONAL:
-            self.corotational = corotational_state(model.rest_pose()[prep.order],
-                                                   self.springs[0], self.springs[1])
+            self.corotational = corotational_state(
+                model.spring_rest_vectors()[spring_order(model, prep)], n)
             self.hooke_ptr = np.zeros_like(self.springs[3])
         else:
             self.hooke_ptr = self.springs[3]

@@ -94,14 +94,24 @@ class Preconditioner:
         return out
 
 
-def spring_table(model: MSSModel, prep: PreparedModel):
-    """Every spring's ends (solver order), rest length and stiffness, grouped by muscle:
-    ``(ends (S, 2), rest (S,), stiffness (S,), ptr (M + 1,))``."""
+def _solver_ends(model: MSSModel, prep: PreparedModel) -> np.ndarray:
+    """(S, 2) every spring's ends in the solver's particle order (the model's spring order)."""
     rank = np.empty(len(prep.order), dtype=np.int64)
     rank[prep.order] = np.arange(len(prep.order))
-    ends = rank[np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)]
+    return rank[np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)]
+
+
+def spring_order(model: MSSModel, prep: PreparedModel) -> np.ndarray:
+    """(S,) the model's springs in :func:`spring_table`'s order (grouped by muscle)."""
+    return np.argsort(prep.muscle[_solver_ends(model, prep)[:, 0]], kind="stable")
+
+
+def spring_table(model: MSSModel, prep: PreparedModel):
+    """Every spring's ends (solver order), rest length and stiffness, grouped by muscle
+    (:func:`spring_order`): ``(ends (S, 2), rest (S,), stiffness (S,), ptr (M + 1,))``."""
+    ends = _solver_ends(model, prep)
     muscle = prep.muscle[ends[:, 0]]
-    order = np.argsort(muscle, kind="stable")
+    order = spring_order(model, prep)
     ptr = np.searchsorted(muscle[order], np.arange(len(prep.offsets))).astype(np.int64)
     return (np.ascontiguousarray(ends[order]),
             np.asarray(model.rest_length, dtype=np.float64)[order].copy(),
