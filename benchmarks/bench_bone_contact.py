@@ -37,7 +37,7 @@ from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.model import prepare
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.solid_contacts import solid_points
-from muscle_mss.core.settings import SolverSettings
+from muscle_mss.core.settings import METHOD_RELAXATION, SolverSettings
 from muscle_mss.filters.collision_solver import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES,
                                                  solid_bones)
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
@@ -48,6 +48,9 @@ from bench_solver import (BONE_COUNTS, ITERATIONS, REPEATS, machine, posed_workl
 
 CONTACTS = (BONE_CONTACT_SPHERES, BONE_CONTACT_SOLID)
 METHODS = ("paper relaxation", "quasi-static")
+PAPER_SETTINGS = SolverSettings.build(method=METHOD_RELAXATION, iterations=ITERATIONS,
+                                      connective_tissue=0.0)
+"""The paper's method and model (no connective tissue), whatever the defaults."""
 
 
 def median_solve(model, prepared, bones, solids):
@@ -56,7 +59,7 @@ def median_solve(model, prepared, bones, solids):
     runs = []
     for _ in range(REPEATS):
         tick = time.perf_counter()
-        result = S.solve(model, *bones, settings=SolverSettings.build(iterations=ITERATIONS),
+        result = S.solve(model, *bones, settings=PAPER_SETTINGS,
                          prepared=prepared, bone_solids=solids)
         runs.append((time.perf_counter() - tick, result.phase_seconds["mss"],
                      result.phase_seconds["bone_cd"], int(result.bone_pairs[-1])))
@@ -91,7 +94,8 @@ def contact_rows(folder, scene, sizes):
             prepared_spheres = prepare(spheres_only)
             none = (None, None, None)
             for args, kind in ((bones, None), (none, solids)):    # compiled, warm
-                S.solve(model, *args, settings=SolverSettings.build(iterations=2),
+                S.solve(model, *args,
+                        settings=SolverSettings.build(method=METHOD_RELAXATION, iterations=2),
                         prepared=prepared, bone_solids=kind)
             spheres = median_solve(model, prepared, bones, None)
             row = [n, label, t, len(solid_points(prepared_spheres)),

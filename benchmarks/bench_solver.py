@@ -27,7 +27,7 @@ from muscle_mss.core import solver as S
 from muscle_mss.core.model import prepare
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_scene import demo_scene
-from muscle_mss.core.settings import STRUCTURES, SolverSettings
+from muscle_mss.core.settings import METHOD_RELAXATION, STRUCTURES, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.collision_solver import MSSCollisionSolver
 from muscle_mss.filters.model_blocks import muscle_block
@@ -83,11 +83,11 @@ def main(sizes):
         per_muscle = int(np.diff(model.offsets)[0])
         boundary = int(model.boundary.sum() / len(model.names))
         for structure in STRUCTURES:
-            # the paper's model (no connective tissue), whatever the default
-            settings = SolverSettings.build(iterations=ITERATIONS, structure=structure,
-                                            connective_tissue=0.0)
-            S.solve(model, *bones, settings=SolverSettings.build(iterations=2, structure=structure),
-                    prepared=prepared)
+            # the paper's method and model (no connective tissue), whatever the defaults
+            settings = SolverSettings.build(method=METHOD_RELAXATION, iterations=ITERATIONS,
+                                            structure=structure, connective_tissue=0.0)
+            S.solve(model, *bones, settings=SolverSettings.build(
+                method=METHOD_RELAXATION, iterations=2, structure=structure), prepared=prepared)
             runs = []
             for _ in range(REPEATS):
                 start = time.perf_counter()

@@ -1,5 +1,5 @@
-"""MSS Collision Solver: relaxes the posed mass-spring model with sphere collisions (DESIGN §5–6,
-paper §3.1 and §3.3).
+"""MSS Collision Solver: the posed mass-spring model's equilibrium with sphere collisions (DESIGN
+§5–6, paper §3.1 and §3.3).
 
 Inputs: ``PosedModel`` (the Rigid Pose Transform's model: points = posed particles; point data
 ``rest_position``, ``fibre_id``, ``fibre_index``, ``fixed``, ``boundary``, ``radius``, ``mass``,
@@ -22,14 +22,14 @@ response, of the pairs it can resolve: not a fixed tendon sphere against its bon
 ``seconds`` (cumulative); its field data ``projection_passes`` and ``remaining_penetration``
 (mm) tell how many collision passes ran after the last iteration and the deepest overlap left.
 
-Two methods (property ``Method``): ``paper relaxation`` (the default,
-:mod:`muscle_mss.core.relaxation`) runs the paper's explicit iterations; ``quasi-static``
-(:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the same model to
-``Tolerance`` (mm, the largest particle move of a quasi-Newton step). The quasi-static method
-is not the default: with ``ConnectiveTissue`` 0.1 it converges at every benchmarked pose of
-both demos at N = 20, but in 200-900 iterations, 2.7-14 s a pose
-(``benchmarks/results/quasi_static.md``; ``docs/solver-notes.md`` says why). The quasi-static
-table adds a ``residual`` column (mm, per iteration); both tables carry field data ``method``
+Two methods (property ``Method``): ``quasi-static`` (the default,
+:mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the model, its
+connective tissue and contacts to ``Tolerance`` (mm, the largest particle move of a
+quasi-Newton step); ``paper relaxation`` (:mod:`muscle_mss.core.relaxation`) runs the paper's
+explicit iterations. With the defaults (co-rotational springs, ``ConnectiveTissue`` 0.1,
+``TissueAlongFibres`` 0.1, ``FibreShortening``) every time point of both demo motions converges
+at N = 20 in 90-420 iterations, 1-4 s a pose on two cores (``docs/solver-notes.md``). The
+quasi-static table adds a ``residual`` column (mm, per iteration); both tables carry field data ``method``
 and ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap
 above ``PenetrationTolerance``, or when the paper's displacement threshold fired). An
 unconverged quasi-static solve prints a warning (ParaView's output messages). Every solve starts
@@ -68,7 +68,8 @@ from muscle_mss.core.exact_bone_distance import particles_out_of_bones
 from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (
     DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE,
-    DEFAULT_BVH_MIN_PRIMITIVES, DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG, DEFAULT_ITERATIONS,
+    DEFAULT_BVH_MIN_PRIMITIVES, DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG,
+    DEFAULT_FIBRE_SHORTENING, DEFAULT_ITERATIONS,
     DEFAULT_METHOD, DEFAULT_PENETRATION_TOLERANCE, DEFAULT_PROJECTION_PASSES, DEFAULT_SPRINGS,
     DEFAULT_TIME_BUDGET, DEFAULT_TIME_STEP, DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, METHODS, STRUCTURE_HASH,
     SPRING_ENERGIES, STRUCTURES, TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS, ContactSettings,
@@ -95,13 +96,14 @@ def solid_bones(posed_bones) -> BoneSolids:
 
 
 class MSSCollisionSolver(MuscleFilter):
-    """Mass-spring relaxation with sphere collisions; see the module docstring."""
+    """The mass-spring model's equilibrium with sphere collisions; see the module docstring."""
 
     LABEL = "MSS Collision Solver"
-    HELP = ("Relaxes the posed mass-spring model of every muscle (Hooke springs with damping, "
-            "a viscous drag, each muscle's resistance to a change of its volume, semi-implicit "
-            "Euler, fixed tendon particles stay) while pushing the boundary "
-            "particles' spheres out of other muscles' spheres and out of the bones (solids by "
+    HELP = ("Solves the posed mass-spring model of every muscle (springs, each muscle's "
+            "resistance to a change of its volume, the connective tissue around it, fixed "
+            "tendon particles) for its static equilibrium, or relaxes it by the paper's "
+            "explicit iterations (Method), while pushing the particles' spheres out of other "
+            "muscles' spheres and out of the bones (solids by "
             "default, keeping every free particle out, or spheres on their surface). Outputs "
             "the solved model (velocity, displacement, collided added, and per muscle the free "
             "particles inside a bone as field data) and a table of the mean displacement of each muscle, the colliding "
@@ -118,15 +120,16 @@ class MSSCollisionSolver(MuscleFilter):
                     "max penetration, seconds."))
     PROPERTIES = (
         Property("Method", "enum", DEFAULT_METHOD,
-                 "quasi-static: solve for the static equilibrium of the springs, volume "
-                 "pressure, connective tissue, fixed tendon particles and contacts to Tolerance "
-                 "(energy minimisation by L-BFGS on a spring matrix factorised once per model, "
-                 "contacts as penalties, then the final collision passes); TimeStep, Drag and "
-                 "DisplacementThreshold do not apply. Give it ConnectiveTissue (0.1 converges "
-                 "the demo thigh's walking pose in about 200 iterations; without tissue it "
-                 "needs about 2,000, and the most flexed pose more than 1,000 either way). "
-                 "paper relaxation (the default): the paper's explicit iterations (mass-spring "
-                 "step, collision response) with the terminations below.",
+                 "quasi-static (the default): solve for the static equilibrium of the springs, "
+                 "volume pressure, connective tissue, fixed tendon particles and contacts to "
+                 "Tolerance (energy minimisation by L-BFGS on a spring matrix factorised once "
+                 "per model, contacts as penalties, then the final collision passes); "
+                 "TimeStep, Drag and DisplacementThreshold do not apply. With the defaults "
+                 "every time point of both demo motions converges (a few hundred iterations); "
+                 "without ConnectiveTissue the slack, slender muscles' shape is not determined "
+                 "(thousands of iterations). paper relaxation: the paper's explicit iterations "
+                 "(mass-spring step, collision response) with the terminations below; its "
+                 "shape depends on the iteration cap.",
                  choices=METHODS, group="Method"),
         Property("Tolerance", "double", DEFAULT_TOLERANCE,
                  "Quasi-static: the solve has converged when no particle moves more than this "
@@ -136,10 +139,11 @@ class MSSCollisionSolver(MuscleFilter):
                  "budget' so does TimeBudget. An unconverged solve prints a warning.",
                  minimum=0.0, group="Method"),
         Property("Springs", "enum", DEFAULT_SPRINGS,
-                 "Quasi-static: the springs' energy. Hooke (the default): the paper's springs, "
+                 "Quasi-static: the springs' energy. Hooke: the paper's springs, "
                  "k (|d| - rest length)^2 / 2, as soft across themselves as their stretch "
                  "(negatively stiff when compressed), so a flexed pose's compressed slender "
-                 "muscles take hundreds of iterations. co-rotational: each spring costs "
+                 "muscles take hundreds of iterations more. co-rotational (the default): each "
+                 "spring costs "
                  "k (|d - R_a D|^2 + |d - R_b D|^2) / 4, D its rest vector, R_a and R_b the "
                  "rotations that best fit its two particles' springs: the same as Hooke for a "
                  "stretch along the spring, stiff across it as well (the lattice resists "
@@ -202,7 +206,8 @@ class MSSCollisionSolver(MuscleFilter):
                  "shape does not depend on the resolution). It makes the equilibrium of slack, "
                  "slender muscles well-defined, so that the quasi-static method converges and "
                  "the shape does not depend on the iteration cap. Both methods; 0 is the "
-                 "paper's model (muscles free between their tendons).",
+                 "paper's model (muscles free between their tendons). The default 0.1 is the "
+                 "ratio at which both demo motions converge everywhere.",
                  minimum=0.0, group="Integration"),
         Property("TissueAlongFibres", "double", DEFAULT_TISSUE_ALONG,
                  "The connective tissue's stiffness along each particle's fibre (its direction "
@@ -210,15 +215,16 @@ class MSSCollisionSolver(MuscleFilter):
                  "fibre lengthens and shortens, and a muscle slides along its neighbours, "
                  "against a weaker tissue (energy k (|d|^2 - (1 - fraction) (d . f)^2) / 2, d "
                  "the particle's displacement from its posed position, f its fibre direction). "
-                 "1: the same in every direction.",
+                 "1: the same in every direction. The default 0.1 lets the flexors of the "
+                 "elbow demo follow their muscles' shortening (with FibreShortening).",
                  minimum=0.0, maximum=1.0, group="Integration"),
-        Property("FibreShortening", "bool", False,
+        Property("FibreShortening", "bool", DEFAULT_FIBRE_SHORTENING,
                  "Fibres that shorten with their muscle: when a fibre's ends come closer than "
                  "at rest (by the factor s), the springs' rest lengths along it follow (times "
                  "s along the fibres, 1 / sqrt(s) across, the rest volume kept), so a "
                  "shortening muscle shortens and thickens instead of keeping its fibre length "
-                 "and folding; lengthening fibres stretch as before. Both methods. Off: the "
-                 "paper's springs, bitwise today's results (core/fibre_shortening.py).",
+                 "and folding; lengthening fibres stretch as before. Both methods. On by "
+                 "default; off: the paper's springs (core/fibre_shortening.py).",
                  group="Integration"),
         Property("CollisionStructure", "enum", STRUCTURE_HASH,
                  "How colliding spheres are found. spatial hash: a uniform grid with candidate "

@@ -5,10 +5,11 @@ Shared by ``muscle-mss demo`` / ``muscle-mss run`` and the pvpython/pvbatch entr
 ``muscle_mss.plugin.batch``, so that all three compute the same for the same scene; what is
 written, and how, is :mod:`muscle_mss.filters.run_output`.
 
-Time points are solved in time order, so that the quasi-static method (``Method``)
-warm starts each from the one before it (the MSS Collision Solver keeps its last solution);
-:func:`run_motion` gives MPI rank k of K a contiguous block of time points, each rank warm
-starting within its own block.
+Time points are solved in time order, so that with the MSS Collision Solver's ``WarmStart``
+on the quasi-static method starts each from the one before it (the filter keeps its last
+solution); :func:`run_motion` gives MPI rank k of K a contiguous block of time points, so that a
+rank would warm start within its own block. By default every time point starts from its posed
+state and the order does not matter.
 """
 from __future__ import annotations
 

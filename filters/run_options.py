@@ -8,11 +8,14 @@ iterations and tolerance from :mod:`muscle_mss.core.settings`, the series and co
 """
 from __future__ import annotations
 
+import argparse
+
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_ITERATIONS,
-                                      DEFAULT_METHOD, DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
-                                      DEFAULT_SPRINGS, METHOD_QUASI_STATIC, METHOD_RELAXATION,
-                                      METHODS, SPRING_ENERGIES)
+from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_SHORTENING,
+                                      DEFAULT_ITERATIONS, DEFAULT_METHOD, DEFAULT_SPRINGS,
+                                      DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS,
+                                      SPRING_ENERGIES)
 
 from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
 from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
@@ -31,7 +34,7 @@ def method_option(method: str) -> str:
 def add_run_options(p) -> None:
     """The options that set up a run (``argparse`` parser ``p``): what the filters compute
     (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``,
-    ``--springs``, ``--connective-tissue``, ``--tissue-along``, ``--fibre-shortening``) and what is
+    ``--springs``, ``--connective-tissue``, ``--tissue-along``, ``--[no-]fibre-shortening``) and what is
     written, and how (``--write``, ``--compressor``)."""
     p.add_argument("--resolution", type=int,
                    help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
@@ -59,10 +62,11 @@ def add_run_options(p) -> None:
                         f"(default {DEFAULT_CONNECTIVE_TISSUE:g})")
     p.add_argument("--tissue-along", type=float,
                    help="the connective tissue's stiffness along the fibres as a fraction of "
-                        f"that across, 0 to 1 (default {DEFAULT_TISSUE_ALONG:g}: isotropic)")
-    p.add_argument("--fibre-shortening", action="store_true", default=None,
+                        f"that across, 0 to 1; 1: isotropic (default {DEFAULT_TISSUE_ALONG:g})")
+    p.add_argument("--fibre-shortening", action=argparse.BooleanOptionalAction, default=None,
                    help="fibres shorten with their muscle instead of folding (the solver's "
-                        "FibreShortening; default off)")
+                        "FibreShortening; default "
+                        f"{'on' if DEFAULT_FIBRE_SHORTENING else 'off'})")
 
 
 def settings_from(args) -> dict:

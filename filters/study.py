@@ -28,8 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import (DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_TIME_STEP,
-                                      METHOD_QUASI_STATIC, METHOD_RELAXATION)
+from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_DISPLACEMENT_THRESHOLD,
+                                      DEFAULT_FIBRE_SHORTENING, DEFAULT_TIME_STEP,
+                                      DEFAULT_TISSUE_ALONG, METHOD_QUASI_STATIC,
+                                      METHOD_RELAXATION)
 
 from . import array_names as A
 from . import vtk_arrays as V
@@ -49,10 +51,14 @@ ACCEPTED_VOLUME_ERROR_PCT = 6.0
 SLOPE_WINDOW = (0.5, 1.0)
 """The later phase of the paper relaxation whose slope Fig. 6 compares: these fractions of the
 iterations (the second half), fitted as log10(mean displacement) against the iteration."""
-LAYOUT_TISSUE = 0.1
-"""ConnectiveTissue of the layouts' quasi-static solves (issue 26's converging ratio): without
-tissue the slender muscles' equilibrium is not determined and no layout converges at a flexed
-pose."""
+PAPER_MODEL = {"Method": METHOD_RELAXATION, "ConnectiveTissue": 0.0, "TissueAlongFibres": 1.0,
+               "FibreShortening": False}
+"""The solver's properties of the layouts' paper relaxation: the paper's method and model (no
+connective tissue, fibres that keep their rest lengths), whatever the defaults are."""
+DEFAULT_MODEL = {"Method": METHOD_QUASI_STATIC, "ConnectiveTissue": DEFAULT_CONNECTIVE_TISSUE,
+                 "TissueAlongFibres": DEFAULT_TISSUE_ALONG,
+                 "FibreShortening": DEFAULT_FIBRE_SHORTENING}
+"""The same properties for the layouts' quasi-static solves: the defaults' model."""
 TIME_STEP_HALVINGS = 2
 """How often a layout's paper relaxation may halve the TimeStep after a muscle diverged."""
 LAYOUT_QUASI_STATIC_CAP = 1500
@@ -69,7 +75,7 @@ class LayoutResult:
     (log10 mm per iteration, :data:`SLOPE_WINDOW`); ``to_threshold``: the first iteration at
     which every muscle moved less than the DisplacementThreshold (0: not within the
     iterations); ``paper_seconds`` the relaxation's; ``quasi_static`` (iterations, seconds,
-    converged) of the quasi-static solve (ConnectiveTissue :data:`LAYOUT_TISSUE`);
+    converged) of the quasi-static solve (:data:`DEFAULT_MODEL`);
     ``springs_per_particle``; ``memory_mb`` the Spring Builder's output (VTK's actual memory
     size); ``volume_error`` (M,) % of the relaxation's surfaces; ``positions`` (n, 3) mm its
     solved particles; ``time_step`` (s) the relaxation's."""
@@ -228,8 +234,7 @@ def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
     for halvings in range(TIME_STEP_HALVINGS + 1):
         step = DEFAULT_TIME_STEP / 2 ** halvings
         pipeline = build_pipeline(scene_folder, {
-            "ParticlesPerFibre": resolution, "Layout": layout, "Method": METHOD_RELAXATION,
-            "TimeStep": step})
+            "ParticlesPerFibre": resolution, "Layout": layout, "TimeStep": step, **PAPER_MODEL})
         try:
             return pipeline, solve_time_point(pipeline, index), step
         except MuscleMSSError:
@@ -238,9 +243,9 @@ def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
 
 
 def layout_result(scene_folder, layout: str, resolution: int, index: int) -> LayoutResult:
-    """Solve the pose ``index`` with ``layout`` by the paper relaxation (its defaults, the
-    TimeStep halved where it diverges) and by the quasi-static method
-    (:data:`LAYOUT_TISSUE`)."""
+    """Solve the pose ``index`` with ``layout`` by the paper relaxation (its defaults and the
+    paper's model, :data:`PAPER_MODEL`, the TimeStep halved where it diverges) and by the
+    quasi-static method (the solver's defaults)."""
     pipeline, paper, time_step = _paper_solve(scene_folder, layout, resolution, index)
     muscles = [row[A.MUSCLE] for row in paper.rows]
     displacement = _displacements(paper.convergence, muscles)
@@ -249,8 +254,8 @@ def layout_result(scene_folder, layout: str, resolution: int, index: int) -> Lay
     springs = sum(block.GetNumberOfLines() for _, block in V.blocks(model))
     particles = _particles(paper.particles)
     memory = sum(block.GetActualMemorySize() for _, block in V.blocks(model)) / 1024.0
-    pipeline.solver.SetMethod(METHOD_QUASI_STATIC)
-    pipeline.solver.SetConnectiveTissue(LAYOUT_TISSUE)
+    for name, value in DEFAULT_MODEL.items():
+        getattr(pipeline.solver, "Set" + name)(value)
     pipeline.solver.SetIterations(LAYOUT_QUASI_STATIC_CAP)
     tick = wallclock.perf_counter()
     solved = solve_time_point(pipeline, index)

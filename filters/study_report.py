@@ -15,7 +15,7 @@ from . import output_folder as folder
 from .pictures import MUSCLE_COLOURS
 from .run_output import SUMMARY_COLUMNS, SUMMARY_FILE, write_csv
 from .study import (ACCEPTED_VOLUME_ERROR_PCT, ARC_CHORD_LIMIT, LAYOUT_QUASI_STATIC_CAP,
-                    LAYOUT_TISSUE, PAPER_VOLUME_ERROR_PCT, PHASES, SLOPE_WINDOW, Study,
+                    PAPER_VOLUME_ERROR_PCT, PHASES, SLOPE_WINDOW, Study,
                     follow_slope)
 
 REPORT_FILE = "report.html"
@@ -327,8 +327,9 @@ def report_html(study: Study, out: str) -> str:
         f"The study took {study.seconds:.0f} s.</p>",
         "<h2>1. Spring layouts (the paper's Fig. 5 and 6)</h2>",
         f"<p>Each layout solves {flexed}, where the bones are rotated farthest from rest, "
-        "by the paper relaxation (its default iterations) and by the quasi-static method "
-        f"(ConnectiveTissue {LAYOUT_TISSUE:g}, at most {LAYOUT_QUASI_STATIC_CAP} iterations). "
+        "by the paper relaxation (its default iterations, the paper's model: no connective "
+        "tissue, no fibre shortening) and by the quasi-static method (the solver's defaults, "
+        f"at most {LAYOUT_QUASI_STATIC_CAP} iterations). "
         "Fig. 5: each muscle's mean particle displacement per iteration. Fig. 6: the slope of "
         f"its later phase, a least-squares line through log10(displacement) over iterations "
         f"{_window_text(study)} (shaded in Fig. 5): the more negative, the faster the layout "

@@ -270,11 +270,11 @@ CASES = [
          r"MSS Collision Solver: the model cannot be solved with TimeStep 0.05 s: particle \d+ "
          r"of muscle 'rectus_femoris' \(mass 1e-08 g.*lower the MSS Collision Solver's "
          r"TimeStep below .* or raise the Spring Builder's Mass",
-         cli=False, settings={"Mass": 1e-8}),
+         cli=False, settings={"Mass": 1e-8, "Method": "paper relaxation"}),
     Case("stiffness-1e9", "Spring Builder Stiffness 1e9 g/s^2 (segfault, exit 139, before)",
          r"MSS Collision Solver: the model cannot be solved with TimeStep 0.05 s: .*springs of "
          r"total stiffness 2.6e\+10 g/s\^2.*lower its Stiffness",
-         cli=False, settings={"Stiffness": 1e9}),
+         cli=False, settings={"Stiffness": 1e9, "Method": "paper relaxation"}),
     Case("bone-spacing-tiny",
          "BoneContact sphere set, BoneSphereSpacing 0.001 mm (17.8 TiB asked, before)",
          r"bone spheres 0.001 mm apart \(\d+ candidate points, a grid of .* cells\) would need "
@@ -404,14 +404,14 @@ CASES = [
          r"fibres.vtm block 'rectus_femoris': holds \d+ vertex or poly-vertex cells "
          r"\(VTK_VERTEX, VTK_POLY_VERTEX\); fibres must be polylines \(VTK_POLY_LINE\)",
          files=fibres_as_poly_vertices("fibres/fibres_0.vtp")),
-    Case("tolerance-with-paper", "`--tolerance 0.01` with the paper method, the default (ignored "
-         "silently, before)",
+    Case("tolerance-with-paper", "`--method paper --tolerance 0.01` (ignored silently, before)",
          r"--tolerance 0.01 applies only to --method quasi-static .*drop --tolerance or add "
-         r"--method quasi-static", options=("--tolerance", "0.01"), chain=False),
-    Case("springs-with-paper", "`--springs co-rotational` with the paper method, the default",
+         r"--method quasi-static", options=("--method", "paper", "--tolerance", "0.01"),
+         chain=False),
+    Case("springs-with-paper", "`--method paper --springs co-rotational`",
          r"--springs co-rotational applies only to --method quasi-static \(its spring energy\)"
          r".*drop --springs or add --method quasi-static",
-         options=("--springs", "co-rotational"), chain=False),
+         options=("--method", "paper", "--springs", "co-rotational"), chain=False),
     Case("write-nothing", "`--write ''` (everything written, before)",
          r"--write '' names no series to write; give one or more of surfaces,fibres,particles",
          options=("--write", ""), chain=False),

@@ -8,7 +8,9 @@ from muscle_mss.core import (collision_spheres, contacts, octree_bvh, spatial_ha
 from muscle_mss.core.model import MSSModel
 from muscle_mss.core.bone_spheres import SPHERES_PER_AREA, bone_spheres, surface_area
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import DEFAULT_PENETRATION_TOLERANCE, STRUCTURES, SolverSettings
+from muscle_mss.core.settings import DEFAULT_PENETRATION_TOLERANCE, STRUCTURES
+
+from test_solver import paper
 
 
 def loose_model(positions, radii, muscles, fixed=None, springs=None, rest=None):
@@ -28,7 +30,7 @@ def loose_model(positions, radii, muscles, fixed=None, springs=None, rest=None):
 
 def one_iteration(model, structure, bones=(None, None, None), projection_passes=0):
     """One iteration: the paper's single response (no final projection unless asked)."""
-    settings = SolverSettings.build(iterations=1, structure=structure,
+    settings = paper(iterations=1, structure=structure,
                                      projection_passes=projection_passes)
     return solver.solve(model, *bones, settings=settings)
 
@@ -142,7 +144,7 @@ def test_solid_bone_takes_spheres_out_from_any_depth_in_one_response(structure):
     solids, box = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], clearance)
     model = loose_model([[1.0, 2.0, 5.0], [0.0, 0.0, 0.0], [0.0, 0.0, -8.0]], radii,
                         [0, 1, 2], fixed=[False, False, True])
-    settings = SolverSettings.build(iterations=1, structure=structure, projection_passes=0)
+    settings = paper(iterations=1, structure=structure, projection_passes=0)
     result = solver.solve(model, settings=settings, bone_solids=solids)
     depth = reference_signed_distance(*box, result.positions)
     assert depth[0] == pytest.approx(radii[0] + clearance, abs=1e-3)
@@ -170,7 +172,7 @@ def test_solid_bone_keeps_out_particles_without_a_sphere_unless_inside_at_rest()
                         fixed=[False, False, False, True])
     model.boundary[:] = [True, False, True, False]
     model.in_bone_at_rest = np.array([False, False, True, True])
-    settings = SolverSettings.build(iterations=1, projection_passes=0)
+    settings = paper(iterations=1, projection_passes=0)
     result = solver.solve(model, settings=settings, bone_solids=solids)
     depth = reference_signed_distance(*box, result.positions)
     assert depth[0] == pytest.approx(1.0, abs=1e-3) and depth[1] == pytest.approx(0.0, abs=1e-3)
@@ -189,11 +191,11 @@ def test_solid_bones_replace_the_sphere_sets_and_can_be_switched_off():
     solids, _ = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], 0.0)
     model = loose_model([[0.0, 0.0, 20.0]], [1.0], [0])
     far_sphere = (np.array([[0.0, 0.0, 20.5]]), np.array([0.5]), np.array([0]))
-    result = solver.solve(model, *far_sphere, settings=SolverSettings.build(iterations=1),
+    result = solver.solve(model, *far_sphere, settings=paper(iterations=1),
                           bone_solids=solids)
     assert np.array_equal(result.positions, model.positions) and result.bone_pairs[0] == 0
     inside = loose_model([[0.0, 0.0, 5.0]], [1.0], [0])
-    off = solver.solve(inside, settings=SolverSettings.build(iterations=1, muscle_bone=False),
+    off = solver.solve(inside, settings=paper(iterations=1, muscle_bone=False),
                        bone_solids=solids)
     assert np.array_equal(off.positions, inside.positions)
     with pytest.raises(MuscleMSSError, match="one finite 3x4 transform per bone"):

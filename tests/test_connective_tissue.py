@@ -12,7 +12,7 @@ from muscle_mss.core.connective_tissue import (REFERENCE_PARTICLES, tissue_share
                                                tissue_stiffness)
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_TISSUE_ALONG,
-                                      METHOD_QUASI_STATIC, METHOD_RELAXATION,
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, SPRINGS_HOOKE,
                                       TERMINATION_THRESHOLD, SolverSettings)
 
 from test_mss import lattice
@@ -21,7 +21,9 @@ from test_quasi_static import (chain_contact_stiffness, chain_on_a_ball, minimis
 
 
 def settings(method=METHOD_QUASI_STATIC, **values) -> SolverSettings:
-    return SolverSettings.build(method=method, **values)
+    """The settings of ``method`` with the paper's Hooke springs (whose energy the NumPy
+    references here write out) and ``values``."""
+    return SolverSettings.build(method=method, **{"springs": SPRINGS_HOOKE, **values})
 
 
 def slab(per_fibre, bend=0.0, length=38.0):
@@ -135,7 +137,7 @@ def test_both_methods_reach_the_same_equilibrium_with_tissue(bent):
     # and the tissue moved it: without it the relaxation goes elsewhere
     free = solver.solve(bent, settings=settings(
         METHOD_RELAXATION, iterations=20000, termination=TERMINATION_THRESHOLD,
-        displacement_threshold=1e-7))
+        displacement_threshold=1e-7, connective_tissue=0.0))
     assert np.linalg.norm(free.positions - relaxed.positions, axis=1).max() > 0.5
 
 
@@ -213,9 +215,9 @@ def test_negative_or_infinite_tissue_is_refused(bent, method):
 
 
 def test_filter_property_reaches_the_solve_and_reports_the_share(small_scene):
-    """``ConnectiveTissue`` on the MSS Collision Solver: 0 by default (no share), and a ratio
+    """``ConnectiveTissue`` on the MSS Collision Solver (0.1 by default, 0: no share): a ratio
     moves the answer toward the posed particles and reports each muscle's share;
-    ``TissueAlongFibres`` (1 by default: isotropic) reaches the solve."""
+    ``TissueAlongFibres`` (0.1 by default, 1: isotropic) reaches the solve."""
     from muscle_mss.filters import MSSCollisionSolver
     from muscle_mss.filters import array_names as A
     from muscle_mss.filters import vtk_arrays as V
@@ -227,13 +229,13 @@ def test_filter_property_reaches_the_solve_and_reports_the_share(small_scene):
     model, bones = posed_at(small_scene, times[len(times) // 3])
     posed = points(model)
     solved, shares = [], []
-    for values in ({}, {"ConnectiveTissue": 0.03}, {"ConnectiveTissue": 0.03,
-                                                   "TissueAlongFibres": 0.1}):
+    solver = MSSCollisionSolver()
+    assert solver.GetConnectiveTissue() == DEFAULT_CONNECTIVE_TISSUE == 0.1
+    assert solver.GetTissueAlongFibres() == DEFAULT_TISSUE_ALONG == 0.1
+    for values in ({"ConnectiveTissue": 0.0}, {"ConnectiveTissue": 0.03, "TissueAlongFibres": 1.0},
+                   {"ConnectiveTissue": 0.03, "TissueAlongFibres": 0.1}):
         solver = MSSCollisionSolver()
         solver.SetIterations(60)
-        if not values:
-            assert solver.GetConnectiveTissue() == DEFAULT_CONNECTIVE_TISSUE == 0.0
-            assert solver.GetTissueAlongFibres() == DEFAULT_TISSUE_ALONG == 1.0
         for name, value in values.items():
             getattr(solver, "Set" + name)(value)
         out, _ = filter_solve(solver, model, bones)

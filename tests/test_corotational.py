@@ -22,8 +22,11 @@ from test_quasi_static import filter_solve, reference_forces
 
 
 def corotational(**values) -> SolverSettings:
-    return SolverSettings.build(method=METHOD_QUASI_STATIC, springs=SPRINGS_COROTATIONAL,
-                                **values)
+    """Quasi-static settings with co-rotational springs and an isotropic tissue (the references
+    here write that energy out), then ``values``."""
+    return SolverSettings.build(**{"method": METHOD_QUASI_STATIC,
+                                   "springs": SPRINGS_COROTATIONAL, "tissue_along": 1.0,
+                                   **values})
 
 
 def polar_rotation(a):
@@ -184,9 +187,8 @@ def test_equilibrium_net_force_with_corotational_springs_is_below_the_tolerance(
     assert np.linalg.norm(force[free], axis=1).max() < bound
     assert np.linalg.norm(springs[free], axis=1).max() > 100 * bound      # not trivially
     # a different answer from Hooke's springs, which are soft across when compressed
-    hooke = solve(model, settings=SolverSettings.build(
-        method=METHOD_QUASI_STATIC, springs=SPRINGS_HOOKE, tolerance=tolerance,
-        iterations=3000, connective_tissue=ratio))
+    hooke = solve(model, settings=corotational(springs=SPRINGS_HOOKE, tolerance=tolerance,
+                                               iterations=3000, connective_tissue=ratio))
     assert hooke.converged
     assert np.linalg.norm(hooke.positions - x, axis=1).max() > 100 * tolerance
     # the share: the tissue's pull over the co-rotational springs' pulls
@@ -213,18 +215,14 @@ def test_filter_property_springs_selects_the_energy(small_scene):
     model, bones = posed_at(small_scene, small_scene.motion.times[len(small_scene.motion.times)
                                                                    // 3])
     solver = MSSCollisionSolver()
-    assert solver.choice("Springs") == SPRINGS_HOOKE
-    assert solver.settings().quasi_static.springs == SPRINGS_HOOKE
-    solver.SetMethod("quasi-static")
-    solver.SetSprings(SPRINGS_COROTATIONAL)
-    solver.SetConnectiveTissue(0.1)
+    assert solver.choice("Springs") == SPRINGS_COROTATIONAL     # the default
     assert solver.settings().quasi_static.springs == SPRINGS_COROTATIONAL
     filter_solve(solver, model, bones)
     first = solver.GetOutputDataObject(0)
     from test_quasi_static import points
     hooke = MSSCollisionSolver()
-    hooke.SetMethod("quasi-static")
-    hooke.SetConnectiveTissue(0.1)
+    hooke.SetSprings(SPRINGS_HOOKE)
+    assert hooke.settings().quasi_static.springs == SPRINGS_HOOKE
     filter_solve(hooke, model, bones)
     apart = np.linalg.norm(points(first) - points(hooke.GetOutputDataObject(0)), axis=1)
     assert apart.max() > 0.01

@@ -109,9 +109,11 @@ def test_the_elbow_demos_shortening_muscles_shorten_at_130_degrees_with_the_prop
     for name in ("biceps_short_head", "brachialis", "brachioradialis"):
         off, on = rows[False][name], rows[True][name]
         assert on[A.MEAN_END_TO_END_STRAIN] < -0.15
-        assert off[A.MEAN_FIBRE_STRAIN] > -0.02                        # today: kept, folded
-        # measured: 58-86 % of the end-to-end change on the small scene (its 4 x 4 fibres)
-        assert on[A.MEAN_FIBRE_STRAIN] < 0.5 * on[A.MEAN_END_TO_END_STRAIN]
+        # off (the other defaults: co-rotational springs, the tissue weak along the fibres):
+        # measured 15-40 % of the end-to-end change, the rest folded (arc/chord 1.2-1.44)
+        assert off[A.MEAN_FIBRE_STRAIN] > 0.5 * on[A.MEAN_END_TO_END_STRAIN]
+        # on: measured 87-98 % of it on the small scene (its 4 x 4 fibres)
+        assert on[A.MEAN_FIBRE_STRAIN] < 0.8 * on[A.MEAN_END_TO_END_STRAIN]
         assert on[A.MAX_ARC_CHORD] < off[A.MAX_ARC_CHORD]
     for name in ("triceps_long_head", "triceps_lateral_head", "triceps_medial_head"):
         assert rows[True][name][A.MEAN_END_TO_END_STRAIN] > 0.1
@@ -126,3 +128,4 @@ def test_the_command_line_sets_the_property_only_when_asked():
     add_run_options(parser)
     assert "FibreShortening" not in settings_from(parser.parse_args([]))
     assert settings_from(parser.parse_args(["--fibre-shortening"]))["FibreShortening"] is True
+    assert settings_from(parser.parse_args(["--no-fibre-shortening"]))["FibreShortening"] is False

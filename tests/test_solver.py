@@ -4,7 +4,7 @@ import pytest
 
 from muscle_mss.core import model as core_model, solver, spatial_hash
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import STRUCTURES, SolverSettings
+from muscle_mss.core.settings import METHOD_RELAXATION, STRUCTURES, SolverSettings
 
 from test_mss import lattice
 
@@ -33,9 +33,15 @@ def pressed():
     return model, bones
 
 
+def paper(**kw) -> SolverSettings:
+    """The paper relaxation's settings for the paper's model (no connective tissue), whatever
+    the defaults, with ``kw``."""
+    return SolverSettings.build(**{"method": METHOD_RELAXATION, "connective_tissue": 0.0, **kw})
+
+
 def run(pressed, **kw):
     model, bones = pressed
-    return solver.solve(model, *bones, settings=SolverSettings.build(**kw))
+    return solver.solve(model, *bones, settings=paper(**kw))
 
 
 def test_fixed_iterations_give_one_row_each(pressed):
@@ -127,7 +133,7 @@ def test_a_sphere_thrown_out_of_the_scene_stops_before_collision_detection(
     thrown = core_model.MSSModel(**{**model.__dict__, "rest_length": rest})
     with pytest.raises(MuscleMSSError, match=r"muscle 'front' diverged at iteration 1: its mean "
                        rf"particle displacement was {moved} mm"):
-        solver.solve(thrown, *bones, settings=SolverSettings.build(iterations=5,
+        solver.solve(thrown, *bones, settings=paper(iterations=5,
                                                                     structure=structure))
 
 
@@ -157,11 +163,11 @@ def test_a_time_step_far_beyond_the_stable_one_is_refused_up_front(pressed):
         run(pressed, time_step=2.0)
     light = core_model.MSSModel(**{**model.__dict__, "mass": np.full(len(model.mass), 1e-8)})
     with pytest.raises(MuscleMSSError, match="mass 1e-08 g"):
-        solver.solve(light, settings=SolverSettings.build())
+        solver.solve(light, settings=paper())
     stiff = core_model.MSSModel(**{**model.__dict__, "stiffness": np.full(len(model.stiffness), 1e9)})
     with pytest.raises(MuscleMSSError, match="springs of total stiffness 2.6e\\+10 g/s\\^2.*lower its "
                        "Stiffness"):
-        solver.solve(stiff, settings=SolverSettings.build())
+        solver.solve(stiff, settings=paper())
     # a centre particle of the lattice: 26 springs of damping 0.5 g/s, 2 / (26 (1 + 1))
     assert core_model.stable_time_step(model) == (pytest.approx(2 / 26), 0, 34, "damping")
 
@@ -181,7 +187,7 @@ def test_the_progress_callback_aborts_the_solve(pressed):
 
     model, bones = pressed
     with pytest.raises(MuscleMSSError, match="stopped by the user"):
-        solver.solve(model, *bones, settings=SolverSettings.build(iterations=10 ** 5),
+        solver.solve(model, *bones, settings=paper(iterations=10 ** 5),
                      progress=progress)
     assert len(calls) == 1 and 0 < calls[0] < 1
 
@@ -197,7 +203,7 @@ def test_bad_settings_are_refused(pressed):
         run(pressed, method="newton")
     with pytest.raises(MuscleMSSError, match="takes no start positions"):
         model, bones = pressed
-        solver.solve(model, *bones, settings=SolverSettings(), start=model.positions)
+        solver.solve(model, *bones, settings=paper(), start=model.positions)
 
 
 def test_settings_route_flat_names_to_their_part_and_refuse_unknown_ones():
