@@ -28,7 +28,7 @@ connective tissue and contacts to ``Tolerance`` (mm, the largest particle move o
 quasi-Newton step); ``paper relaxation`` (:mod:`muscle_mss.core.relaxation`) runs the paper's
 explicit iterations. With the defaults (co-rotational springs, ``ConnectiveTissue`` 0.1,
 ``TissueAlongFibres`` 0.1, ``FibreShortening``) every time point of both demo motions converges
-at N = 20 in 90-420 iterations, 1-4 s a pose on two cores (``docs/solver-notes.md``). The
+at N = 20 in 90-500 iterations, 1-5 s a pose on two cores (``docs/solver-notes.md``). The
 quasi-static table adds a ``residual`` column (mm, per iteration); both tables carry field data ``method``
 and ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap
 above ``PenetrationTolerance``, or when the paper's displacement threshold fired). An
