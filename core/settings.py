@@ -40,12 +40,12 @@ SPRING_ENERGIES = (SPRINGS_HOOKE, SPRINGS_COROTATIONAL)
 
 # The quasi-static equilibrium (with the tissue and the co-rotational springs below): every
 # time point of both demo motions converges at N = 20, and what a user sees improves on the
-# paper relaxation's 500 iterations (surface volume error over the thigh walk 0.35 / 2.21 %
-# mean / max against 0.82 / 5.14 %, the elbow 0.69 / 3.80 % against 1.12 / 4.78 %, no sphere
-# wedged at 130 degrees), at 2-8 times its seconds (docs/solver-notes.md).
+# paper relaxation's 500 iterations (surface volume error over the thigh walk 0.31 / 2.21 %
+# mean / max against 0.82 / 5.14 %, the elbow 0.49 / 2.05 % against 1.12 / 4.78 %, no sphere
+# wedged at 130 degrees), at 2-3 times its seconds (docs/solver-notes.md, "The default").
 DEFAULT_METHOD = METHOD_QUASI_STATIC
 # The iteration cap, for both methods. The quasi-static solves of both demo motions stop at
-# their tolerance within it (at most 420 iterations at N = 20, 964 at N = 80); the paper
+# their tolerance within it (at most 502 iterations at N = 20, 770 at N = 80); the paper
 # relaxation runs all of them unless its Termination says otherwise (the paper ran 500).
 DEFAULT_ITERATIONS = 2000
 DEFAULT_TIME_BUDGET = 1.0               # s
@@ -71,11 +71,11 @@ DEFAULT_CONNECTIVE_TISSUE = 0.1
 # method and FibreShortening over both demo motions (docs/accuracy.md), 0.1 beats 1 in every
 # column (elbow median iterations 410 / 479, flexors' follow slope 0.75-0.86 / 0.57-0.67, largest
 # volume error 3.26 / 4.40 %); with co-rotational springs as well the flexors' slope is
-# 0.81-0.97 and every time point converges. (Without FibreShortening, Hooke springs and 0.1
+# 0.84-0.97 and every time point converges. (Without FibreShortening, Hooke springs and 0.1
 # left a sphere wedged 3.4 mm deep at the elbow's 130 degrees.)
 DEFAULT_TISSUE_ALONG = 0.1
 # Fibres shorten with their muscle (core/fibre_shortening.py): with it the elbow's flexors
-# shorten and thicken instead of folding (fibres' arc / chord at 130 degrees at most 1.20
+# shorten and thicken instead of folding (fibres' arc / chord over the motion at most 1.18
 # against 1.53 without), and both demo motions converge in fewer iterations.
 DEFAULT_FIBRE_SHORTENING = True
 # The final collision passes (:func:`muscle_mss.core.contacts.project`): a sphere pressed

@@ -29,8 +29,8 @@ quasi-Newton step); ``paper relaxation`` (:mod:`muscle_mss.core.relaxation`) run
 explicit iterations. With the defaults (co-rotational springs, ``ConnectiveTissue`` 0.1,
 ``TissueAlongFibres`` 0.1, ``FibreShortening``) every time point of both demo motions converges
 at N = 20 in 90-500 iterations, 1-5 s a pose on two cores (``docs/solver-notes.md``). The
-quasi-static table adds a ``residual`` column (mm, per iteration); both tables carry field data ``method``
-and ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap
+quasi-static table adds a ``residual`` column (mm, per iteration); both tables carry field data
+``method`` and ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap
 above ``PenetrationTolerance``, or when the paper's displacement threshold fired). An
 unconverged quasi-static solve prints a warning (ParaView's output messages). Every solve starts
 from the posed state, so a time point's answer does not depend on the times solved before it

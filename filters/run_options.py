@@ -34,8 +34,8 @@ def method_option(method: str) -> str:
 def add_run_options(p) -> None:
     """The options that set up a run (``argparse`` parser ``p``): what the filters compute
     (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``,
-    ``--springs``, ``--connective-tissue``, ``--tissue-along``, ``--[no-]fibre-shortening``) and what is
-    written, and how (``--write``, ``--compressor``)."""
+    ``--springs``, ``--connective-tissue``, ``--tissue-along``, ``--[no-]fibre-shortening``) and
+    what is written, and how (``--write``, ``--compressor``)."""
     p.add_argument("--resolution", type=int,
                    help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
     p.add_argument("--layout", choices=LAYOUTS, help=f"spring layout (default {DEFAULT_LAYOUT})")

@@ -10,9 +10,9 @@
 (``muscle_mss.filters.run_output``). Under MPI rank r of K computes the r-th of K contiguous
 blocks of time points in time order; every time point starts from its posed state, so the
 ranks give the serial run's results (with the solver's ``WarmStart`` on, the quasi-static method
-would start each from the one before it within its block). ``--study`` writes the paper's experiments
-and the fibre-length study instead, as ``muscle-mss study`` does (``OUT/report.html``,
-:mod:`muscle_mss.filters.study`), in one process.
+would start each from the one before it within its block). ``--study`` writes the paper's
+experiments and the fibre-length study instead, as ``muscle-mss study`` does
+(``OUT/report.html``, :mod:`muscle_mss.filters.study`), in one process.
 """
 import argparse
 import contextlib

@@ -118,7 +118,7 @@ def contact_stiffness(model: MSSModel, prep: PreparedModel, pre, settings) -> np
     :meth:`~muscle_mss.core.model.MSSModel.resolution_scale`. A contact presses on the
     particles of a patch, and a finer lattice has more of them along each fibre and softer
     fibres: with one ``w`` for every resolution the full demo thigh's most flexed pose at 80
-    particles per fibre took 1,446 iterations (134 without contacts), with the scale 512."""
+    particles per fibre took 1,446 iterations (134 without contacts), with the scale 497."""
     scale = model.resolution_scale()[prep.muscle]
     return float(settings.quasi_static.weight) * pre.stiffest * scale
 
@@ -170,8 +170,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         x[:, pre.free] = begin[prep.order][pre.free].T
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
-                              contact_stiffness(model, prep, pre, settings), bone_solids, tissue_targets(model, prep.order, posed.T,
-                                                          settings.tissue_along))
+                              contact_stiffness(model, prep, pre, settings), bone_solids,
+                              tissue_targets(model, prep.order, posed.T, settings.tissue_along))
     outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
     x[:, pre.free] = outcome.position.T
     return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, outcome)
