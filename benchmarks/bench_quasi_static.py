@@ -39,7 +39,8 @@ from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.model import prepare
 from muscle_mss.core.settings import (DEFAULT_SPRINGS,
                                       DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
-                                      METHOD_QUASI_STATIC, SPRING_ENERGIES, SolverSettings)
+                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, SPRING_ENERGIES,
+                                      SolverSettings)
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
 from muscle_mss.filters.collision_solver import MSSCollisionSolver, solid_bones
@@ -128,7 +129,8 @@ def pose_row(model, bones, solids, prepared, args):
         connective_tissue=args.ratio))
     free, _ = timed(model, bones, solids, prepared,
                     chosen(args, iterations=args.cap, connective_tissue=0.0))
-    paper, _ = timed(model, bones, solids, prepared, SolverSettings(connective_tissue=0.0))
+    paper, _ = timed(model, bones, solids, prepared, SolverSettings.build(
+        method=METHOD_RELAXATION, iterations=500, connective_tissue=0.0))
     share = result.tissue_share
     return (result.iterations, seconds, result.converged, float(result.residual[-1]),
             *distance(result.positions, tight.positions), tight.converged,

@@ -36,16 +36,20 @@ from muscle_mss.core import solver as S
 from muscle_mss.core.fibre_shortening import shortened_rest_lengths
 from muscle_mss.core.model import prepare
 from muscle_mss.core.quasi_static.preconditioner import model_springs, preconditioner
-from muscle_mss.core.settings import SolverSettings
+from muscle_mss.core.settings import METHOD_RELAXATION, SPRINGS_HOOKE, SolverSettings
 
 from bench_quasi_static import distance, quasi_static, thigh_workload
 from bench_solver import machine, write_result
 
 
+HOOKE_MODEL = {"springs": SPRINGS_HOOKE, "tissue_along": 1.0}
+"""The model this study measured (Hooke springs, an isotropic tissue), whatever the defaults."""
+
+
 def variants(tissue):
     """Table 1's rows: ``(label, settings keywords, start from the paper relaxation,
     FibreShortening)``."""
-    return (("as the defaults set it", {}, False, False),
+    return (("as the defaults set it (Hooke springs, isotropic tissue)", {}, False, False),
             ("no muscle-muscle contacts", {"muscle_muscle": False}, False, False),
             ("no contacts", {"muscle_muscle": False, "muscle_bone": False}, False, False),
             ("no contacts, no volume term", {"muscle_muscle": False, "muscle_bone": False,
@@ -68,13 +72,15 @@ def ablation_rows(model, bones, solids, tissue, cap):
     rows, reference = [], None
     for label, values, from_paper, shorten in variants(tissue):
         m, p = (shortened, shortened_prepared) if shorten else (model, prepared)
-        settings = quasi_static(**{"iterations": cap, "connective_tissue": tissue, **values})
+        settings = quasi_static(**{"iterations": cap, "connective_tissue": tissue,
+                                   **HOOKE_MODEL, **values})
         tick = time.perf_counter()
         start = None
         if from_paper:
             start = S.solve(m, *bones, prepared=p, bone_solids=solids, settings=
-                            SolverSettings.build(iterations=1000,
-                                                 connective_tissue=tissue)).positions
+                            SolverSettings.build(method=METHOD_RELAXATION, iterations=1000,
+                                                 connective_tissue=tissue,
+                                                 tissue_along=1.0)).positions
         paper_seconds = time.perf_counter() - tick
         result = S.solve(m, *bones, prepared=p, bone_solids=solids, settings=settings,
                          start=start)

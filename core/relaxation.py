@@ -61,8 +61,9 @@ from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, pr
                     stability_problem)
 from .connective_tissue import check_along, tissue_stiffness, tissue_targets
 from .mss import mss_state, muscle_step
-from .settings import (STRUCTURE_HASH, TERMINATION_BUDGET, TERMINATION_ITERATIONS,
-                       TERMINATION_THRESHOLD, TERMINATIONS, SolverSettings)
+from .settings import (METHOD_RELAXATION, STRUCTURE_HASH, TERMINATION_BUDGET,
+                       TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS,
+                       SolverSettings)
 from .solid_contacts import respond_solids, solid_contacts_range, solid_grid, solid_state
 
 PROGRESS_SECONDS = 0.1
@@ -217,7 +218,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     bones as solids for the muscle-bone contacts, of the iterations and the final passes (then
     give no bone spheres: they would be ignored).
     """
-    settings = settings or SolverSettings()
+    settings = settings or SolverSettings(method=METHOD_RELAXATION)
     check_settings(settings)
     if bone_solids is not None:
         bone_solids.check()
