@@ -20,9 +20,11 @@ answers are apart at the most flexed pose.
 Machine and load in the tables; written to benchmarks/results/ (``--out``).
 
     python benchmarks/bench_quasi_static.py [--scenes thigh arm] [--sizes 20 80]
-        [--ratio 0.01] [--sweep 0 0.001 0.003 0.01 0.03] [--cap 1500] [--walk-cap 300]
-        [--springs Hooke|co-rotational] [--contact-weight 0.3] [--walk-sizes 20 80]
-        [--walk-modes cold warm] [--out quasi_static.md]
+        [--ratio 0.1] [--sweep 0 0.001 0.003 0.01 0.03 0.1] [--cap 2000] [--walk-cap 2000]
+        [--[no-]fibre-shortening] [--springs Hooke|co-rotational] [--contact-weight 1.0]
+        [--walk-sizes 20 80] [--walk-modes cold warm] [--out quasi_static.md]
+
+Every option defaults to the solver's default (the model a user gets).
 """
 from __future__ import annotations
 
@@ -37,7 +39,9 @@ from muscle_mss.core import solver as S
 from muscle_mss.core.demo_arm import demo_arm_scene, flexion_angles
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.model import prepare
-from muscle_mss.core.settings import (DEFAULT_SPRINGS,
+from muscle_mss.core.fibre_shortening import shortened_springs
+from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_SHORTENING,
+                                      DEFAULT_ITERATIONS, DEFAULT_SPRINGS,
                                       DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
                                       METHOD_QUASI_STATIC, METHOD_RELAXATION, SPRING_ENERGIES,
                                       SolverSettings)
@@ -64,23 +68,28 @@ def chosen(args, **values) -> SolverSettings:
     return quasi_static(springs=args.springs, contact_weight=args.contact_weight, **values)
 
 
-def workload(pipeline, t):
-    """The solver's inputs at time ``t`` as the filter builds them: the model, its bone spheres
-    and its bones as solids."""
+def workload(pipeline, t, fibre_shortening=DEFAULT_FIBRE_SHORTENING):
+    """The solver's inputs at time ``t`` as the filter builds them: the model (its springs'
+    rest state shortened with the pose when ``fibre_shortening``, as the filter's
+    FibreShortening does), its bone spheres and its bones as solids."""
     blocks = V.blocks(update_at(pipeline.pose, 0, t))
     posed_bones = update_at(pipeline.pose, 1, t)
     bones = bone_sphere_set(posed_bones)
     model = MSSCollisionSolver._model([b for b, _ in blocks],
                                       [muscle_block(name, block) for name, block in blocks])
+    if fibre_shortening:
+        model = shortened_springs(model)
     return model, bones, solid_bones(posed_bones)
 
 
-def thigh_workload(t, n):
+def thigh_workload(t, n, fibre_shortening=False):
     """:func:`workload` of the full demo thigh at time ``t`` with ``n`` particles per fibre
-    (the scene written to a temporary folder for the pipeline's readers)."""
+    (the scene written to a temporary folder for the pipeline's readers); the rest lengths
+    those of the rest pose unless ``fibre_shortening``."""
     with tempfile.TemporaryDirectory() as folder:
         write_scene(demo_scene("full"), folder)
-        return workload(build_pipeline(folder, {"ParticlesPerFibre": n}), t)
+        return workload(build_pipeline(folder, {"ParticlesPerFibre": n}), t,
+                        fibre_shortening)
 
 
 def distance(a, b):
@@ -120,8 +129,9 @@ def timed(model, bones, solids, prepared, settings):
     return result, time.perf_counter() - tick
 
 
-def pose_row(model, bones, solids, prepared, args):
-    """Table 1's measurements of one pose."""
+def pose_row(model, bones, solids, prepared, args, paper_model):
+    """Table 1's measurements of one pose; the paper relaxation's on ``paper_model`` (the rest
+    pose's rest lengths)."""
     result, seconds = timed(model, bones, solids, prepared,
                             chosen(args, iterations=args.cap, connective_tissue=args.ratio))
     tight, _ = timed(model, bones, solids, prepared, chosen(
@@ -129,8 +139,8 @@ def pose_row(model, bones, solids, prepared, args):
         connective_tissue=args.ratio))
     free, _ = timed(model, bones, solids, prepared,
                     chosen(args, iterations=args.cap, connective_tissue=0.0))
-    paper, _ = timed(model, bones, solids, prepared, SolverSettings.build(
-        method=METHOD_RELAXATION, iterations=500, connective_tissue=0.0))
+    paper, _ = timed(paper_model, bones, solids, prepare(paper_model), SolverSettings.build(
+        method=METHOD_RELAXATION, iterations=500, connective_tissue=0.0, tissue_along=1.0))
     share = result.tissue_share
     return (result.iterations, seconds, result.converged, float(result.residual[-1]),
             *distance(result.positions, tight.positions), tight.converged,
@@ -157,8 +167,8 @@ def walk_rows(name, scene, folder, args, flexed_time, n):
     warm (``args.walk_modes``), and the two answers' distance at its most flexed pose (the time
     point nearest ``flexed_time``; None with one mode)."""
     pipeline = build_pipeline(folder, {"ParticlesPerFibre": n})
-    inputs = [workload(pipeline, float(t)) for t in scene.motion.times]
-    prepared = prepare(inputs[0][0])
+    inputs = [workload(pipeline, float(t), args.fibre_shortening)
+              for t in scene.motion.times]
     settings = chosen(args, iterations=args.walk_cap, connective_tissue=args.ratio)
     flexed = int(np.argmin(np.abs(scene.motion.times - flexed_time)))
     rows, answers = [], []
@@ -168,8 +178,8 @@ def walk_rows(name, scene, folder, args, flexed_time, n):
             start = None if (mode == "cold" or last is None) else (
                 model.positions + (last[1] - last[0]))
             tick = time.perf_counter()
-            result = S.solve(model, *bones, settings=settings, prepared=prepared, start=start,
-                             bone_solids=solids)
+            result = S.solve(model, *bones, settings=settings, prepared=prepare(model),
+                             start=start, bone_solids=solids)
             seconds.append(time.perf_counter() - tick)
             last = (model.positions, result.positions)
             iterations.append(result.iterations)
@@ -195,12 +205,13 @@ def main(args):
         for n in args.sizes:
             pipeline = build_pipeline(folder, {"ParticlesPerFibre": n})
             for label, t in poses:
-                model, bones, solids = workload(pipeline, t)
+                model, bones, solids = workload(pipeline, t, args.fibre_shortening)
+                paper_model = workload(pipeline, t, False)[0]
                 prepared = prepare(model)
                 S.solve(model, *bones, prepared=prepared, bone_solids=solids,
                         settings=quasi_static(iterations=2))        # compiled, warm
                 table1.append((name, n, label, t, *pose_row(model, bones, solids, prepared,
-                                                             args)))
+                                                             args, paper_model)))
                 print(table1[-1], flush=True)
                 if n == 20 and args.sweep:
                     for row in sweep_rows(model, bones, solids, prepared, args):
@@ -217,7 +228,8 @@ def main(args):
     table1_lines = [
         "", f"Table 1: Springs {args.springs}, contact weight "
         f"{chosen(args).quasi_static.weight:g}, ConnectiveTissue {args.ratio:g} "
-        f"(TissueAlongFibres {DEFAULT_TISSUE_ALONG:g}), Tolerance {DEFAULT_TOLERANCE} mm, cap "
+        f"(TissueAlongFibres {DEFAULT_TISSUE_ALONG:g}), FibreShortening "
+        f"{'on' if args.fibre_shortening else 'off'}, Tolerance {DEFAULT_TOLERANCE} mm, cap "
         f"{args.cap} iterations, bones as solids. Tighter: Tolerance "
         f"{DEFAULT_TOLERANCE / 10} mm, cap {3 * args.cap}. No tissue: the same solve at "
         "ConnectiveTissue 0. Paper: the paper relaxation, 500 iterations, no tissue. "
@@ -268,13 +280,17 @@ if __name__ == "__main__":
                         default=["thigh", "arm"])
     parser.add_argument("--sizes", type=int, nargs="*", default=[20, 80],
                         help="particles per fibre of Table 1 (none: no Table 1)")
-    parser.add_argument("--ratio", type=float, default=1e-2)
-    parser.add_argument("--sweep", type=float, nargs="*", default=[0, 1e-3, 3e-3, 1e-2, 3e-2])
-    parser.add_argument("--cap", type=int, default=1500)
+    parser.add_argument("--ratio", type=float, default=DEFAULT_CONNECTIVE_TISSUE)
+    parser.add_argument("--sweep", type=float, nargs="*", default=[0, 1e-3, 3e-3, 1e-2, 3e-2, DEFAULT_CONNECTIVE_TISSUE])
+    parser.add_argument("--cap", type=int, default=DEFAULT_ITERATIONS)
+    parser.add_argument("--fibre-shortening", action=argparse.BooleanOptionalAction,
+                        default=DEFAULT_FIBRE_SHORTENING,
+                        help="the springs' rest state shortened with the pose (the filter's "
+                        "FibreShortening)")
     parser.add_argument("--springs", choices=SPRING_ENERGIES, default=DEFAULT_SPRINGS)
     parser.add_argument("--contact-weight", type=float,
                         help="the contact penalty's weight (default: the spring energy's)")
-    parser.add_argument("--walk-cap", type=int, default=300,
+    parser.add_argument("--walk-cap", type=int, default=DEFAULT_ITERATIONS,
                         help="iterations per time point of Table 3 (0: no Table 3)")
     parser.add_argument("--walk-sizes", type=int, nargs="+", default=[20],
                         help="particles per fibre of Table 3's motions")
