@@ -8,7 +8,7 @@ order) and return results in the input order.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -141,7 +141,11 @@ class SolveResult:
 
 @dataclass
 class PreparedModel:
-    """What depends only on the model's topology: particle order and spring layout."""
+    """What depends only on the model's topology: particle order and spring layout.
+    ``cache`` holds other methods' data of this model (the quasi-static spring table);
+    ``matrix_cache`` what depends on the springs' stiffnesses and the fixed particles but not
+    on their rest lengths (the quasi-static factorisation), which :func:`with_rest_state`
+    keeps."""
 
     order: np.ndarray
     offsets: np.ndarray
@@ -153,8 +157,9 @@ class PreparedModel:
     fixed: np.ndarray
     boundary: np.ndarray
     in_bone_at_rest: np.ndarray | None = None   # (n,) bool, solver order, or None: not known
-    cache: dict = field(default_factory=dict)   # other methods' topology data (factorisations)
+    cache: dict = field(default_factory=dict)
     stable_step: tuple | None = None            # stable_time_step(model) (springs, masses)
+    matrix_cache: dict = field(default_factory=dict)
 
 
 def prepare(model: MSSModel) -> PreparedModel:
@@ -180,6 +185,21 @@ def prepare(model: MSSModel) -> PreparedModel:
                          np.asarray(model.radius, dtype=np.float64)[order], muscle, fixed,
                          np.asarray(model.boundary, dtype=bool)[order], in_bone,
                          stable_step=stable_time_step(model))
+
+
+def with_rest_state(prep: PreparedModel, model: MSSModel) -> PreparedModel:
+    """``prep``, prepared for a model with ``model``'s topology, rest pose, masses, spring
+    stiffnesses and damping and fixed particles, made ready for ``model``, whose springs' rest
+    lengths and rest vectors may differ (FibreShortening gives every pose its own): the spring
+    layout built again, the particle order, cages, stable step and ``matrix_cache`` kept (the
+    same arrays as :func:`prepare` would give; the quasi-static factorisation costs 0.05 s a
+    pose of the demo thigh at N = 20, 0.3 s at N = 80)."""
+    rank = np.empty(len(prep.order), dtype=np.int64)
+    rank[prep.order] = np.arange(len(prep.order))
+    springs = rank[np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)]
+    layout = spring_layout(springs, model.rest_length, model.stiffness, model.damping,
+                           prep.offsets)
+    return replace(prep, layout=layout, cache={})
 
 
 def volume_cages(model: MSSModel, rank) -> VolumeCages:

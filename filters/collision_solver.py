@@ -59,7 +59,7 @@ import numpy as np
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
 from muscle_mss.core import quasi_static as Q
-from muscle_mss.core.model import MSSModel, PreparedModel, prepare
+from muscle_mss.core.model import MSSModel, PreparedModel, prepare, with_rest_state
 from muscle_mss.core.solver import solve
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
@@ -274,6 +274,7 @@ class MSSCollisionSolver(MuscleFilter):
     def __init__(self):
         super().__init__()
         self._prepared_key = None
+        self._prepared_shape = None
         self._prepared = None
         self._prepared_identity = None
         self._last = None       # (key, posed, solved) of the last quasi-static solve
@@ -283,7 +284,7 @@ class MSSCollisionSolver(MuscleFilter):
         # shares them), so they are checked, concatenated and hashed once
         self._blocks = {}
         self._static = (None, None)
-        self.setup_counts = {"checked": 0, "remembered": 0}
+        self.setup_counts = {"checked": 0, "remembered": 0, "prepared": 0, "rest state": 0}
 
     def settings(self) -> SolverSettings:
         """The properties as the core's :class:`~muscle_mss.core.settings.SolverSettings`."""
@@ -456,18 +457,27 @@ class MSSCollisionSolver(MuscleFilter):
             return self._prepared
         self._prepared_identity = None      # until this model is prepared (it may be refused)
         digest = hashlib.sha1()
-        for array in (model.offsets, model.springs, model.rest_length, model.stiffness,
-                      model.damping, model.fixed, model.mass, model.boundary, model.radius,
-                      model.fibre_id, model.fibre_index, model.rest_positions):
+        for array in (model.offsets, model.springs, model.stiffness, model.damping,
+                      model.fixed, model.mass, model.boundary, model.radius, model.fibre_id,
+                      model.fibre_index, model.rest_positions):
             digest.update(np.ascontiguousarray(array).tobytes())
         for label, optional in ((b"grid", model.fibre_grid),
-                                (b"in bone", model.in_bone_at_rest),
-                                (b"rest vectors", model.rest_vectors)):
+                                (b"in bone", model.in_bone_at_rest)):
             if optional is not None:
                 digest.update(label + np.ascontiguousarray(optional).tobytes())
+        shape = digest.hexdigest()
+        digest.update(np.ascontiguousarray(model.rest_length).tobytes())
+        if model.rest_vectors is not None:
+            digest.update(b"rest vectors" + np.ascontiguousarray(model.rest_vectors).tobytes())
         key = digest.hexdigest()
         if key != self._prepared_key:
-            self._prepared = prepare(model)
-            self._prepared_key = key
+            if self._prepared is not None and shape == self._prepared_shape:
+                # only the rest lengths changed (FibreShortening): keep the factorisation
+                self._prepared = with_rest_state(self._prepared, model)
+                self.setup_counts["rest state"] += 1
+            else:
+                self._prepared = prepare(model)
+                self.setup_counts["prepared"] += 1
+            self._prepared_key, self._prepared_shape = key, shape
         self._prepared_identity = identities
         return self._prepared

@@ -378,7 +378,8 @@ def test_solver_checks_its_model_arrays_once_per_change_and_gives_the_same_parti
     solved_points(pipeline, times[0])
     prepared = solver._prepared
     later = solved_points(pipeline, times[2])
-    assert solver.setup_counts == {"checked": blocks, "remembered": blocks}
+    assert solver.setup_counts == {"checked": blocks, "remembered": blocks, "prepared": 1,
+                                   "rest state": 0}
     assert solver._prepared is prepared
 
     def fresh(t):
@@ -398,7 +399,8 @@ def test_solver_checks_its_model_arrays_once_per_change_and_gives_the_same_parti
     # a changed spring property upstream: new arrays, checked again, a new ordering
     pipeline.springs.SetStiffness(2.0 * pipeline.springs.GetStiffness())
     stiffer = solved_points(pipeline, times[2])
-    assert solver.setup_counts == {"checked": 2 * blocks, "remembered": blocks}
+    assert solver.setup_counts == {"checked": 2 * blocks, "remembered": blocks, "prepared": 2,
+                                   "rest state": 0}
     assert solver._prepared is not prepared
     assert any(not np.array_equal(stiffer[n], later[n]) for n in later)
     want = fresh(times[2])
@@ -417,6 +419,39 @@ def test_solver_checks_its_model_arrays_once_per_change_and_gives_the_same_parti
         solver.execute([motion_run.update_at(pipeline.pose, 0, times[1]),
                         motion_run.update_at(pipeline.pose, 1, times[1])],
                        [None, None])
+
+
+def test_fibre_shortening_keeps_the_factorisation_across_poses_and_the_same_particles(
+        small_scene_dir):
+    """With FibreShortening every pose has its own rest lengths, but not its own spring
+    matrix: the second time point keeps the first's factorisation (the same object) and
+    rebuilds only the spring layout, and its particles are bitwise those of a solver that
+    solves that time point alone."""
+    from muscle_mss.filters import MSSCollisionSolver
+    from muscle_mss.filters import vtk_arrays as V
+    pipeline = motion_run.build_pipeline(small_scene_dir, {"Iterations": 40})
+    solver, times = pipeline.solver, pipeline.times
+    solved_points(pipeline, times[0])
+    first = solver._prepared
+    factorisations = dict(first.matrix_cache)
+    assert factorisations, "the quasi-static solve factorised nothing"
+    later = solved_points(pipeline, times[-3])     # (the last repeats the first pose)
+    assert solver.setup_counts["prepared"] == 1 and solver.setup_counts["rest state"] == 1
+    assert solver._prepared is not first
+    assert all(solver._prepared.matrix_cache[k] is v for k, v in factorisations.items())
+    rest_lengths = [p.cache["quasi-static springs"][1] for p in (first, solver._prepared)]
+    assert (rest_lengths[1] < rest_lengths[0]).any(), "no fibre shortened: nothing tested"
+
+    other = MSSCollisionSolver()
+    other.SetIterations(40)
+    for port in range(2):
+        other.SetInputConnection(port, pipeline.pose.GetOutputPort(port))
+    want = {name: V.points_of(block)
+            for name, block in V.blocks(motion_run.update_at(other, 0, times[-3]))}
+    assert other.setup_counts["prepared"] == 1 and other.setup_counts["rest state"] == 0
+    assert want.keys() == later.keys()
+    for name in want:
+        np.testing.assert_array_equal(later[name], want[name])
 
 
 def test_solver_refusing_a_model_refuses_it_again_rather_than_reuse_the_last_one(

@@ -128,12 +128,13 @@ def _bandwidth(matrix, order) -> int:
 def preconditioner(model: MSSModel, prep: PreparedModel,
                    tissue_ratio: float = 0.0) -> Preconditioner:
     """The factorised ``L`` plus the connective tissue of ``tissue_ratio`` on its diagonal,
-    for ``prep``'s topology, cached on ``prep``. Without tissue, a muscle whose free particles
+    for ``prep``'s topology, cached on ``prep`` (its ``matrix_cache``: ``L`` does not depend on
+    the springs' rest lengths). Without tissue, a muscle whose free particles
     are not all joined to a fixed particle through springs would float: the solve refuses
     it."""
     key = ("quasi-static preconditioner", float(tissue_ratio))
-    if key in prep.cache:
-        return prep.cache[key]
+    if key in prep.matrix_cache:
+        return prep.matrix_cache[key]
     ends, _, stiffness, _ = model_springs(model, prep)
     n = int(prep.offsets[-1])
     diagonal = np.bincount(ends.ravel(), np.repeat(stiffness, 2), minlength=n)
@@ -174,7 +175,7 @@ def preconditioner(model: MSSModel, prep: PreparedModel,
         blocks.append((rows[order], np.ascontiguousarray(factor_.T).ravel(), width))
         widest = max(widest, width)
     result = Preconditioner(free, *_packed(blocks), stiffest, widest, tissue)
-    prep.cache[key] = result
+    prep.matrix_cache[key] = result
     return result
 
 
