@@ -54,7 +54,7 @@ def corotational_state(rest_vectors, n: int) -> CorotationalState:
                              np.zeros((n, 9)))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _largest_root(c2, c1, c0, upper):
     """The largest root of ``l^4 + c2 l^2 + c1 l + c0`` (all four roots real), by Newton's
     method from ``upper``, a bound above it (from above the iterates fall monotonically)."""
@@ -71,7 +71,7 @@ def _largest_root(c2, c1, c0, upper):
     return root
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _adjugate_column(m00, m01, m02, m03, m11, m12, m13, m22, m23, m33):
     """The column of largest norm of the adjugate of the symmetric 4x4 matrix ``m`` (its upper
     triangle given): for ``m = N - l I`` with ``l`` a simple eigenvalue of ``N``, a multiple of
@@ -147,7 +147,7 @@ def fit_rotation(frame, p):
     frame[p, 8] = 1.0 - 2.0 * (x * x + y * y)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _determinant(m00, m01, m02, m03, m11, m12, m13, m22, m23, m33):
     """The determinant of the symmetric 4x4 matrix ``m`` (its upper triangle given)."""
     s0 = m00 * m11 - m01 * m01
