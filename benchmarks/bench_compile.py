@@ -72,11 +72,13 @@ def measure() -> dict:
         warm_up.warm_up(warm_up.DEFAULT_VARIANTS)
         default_wall = time.perf_counter() - start
         default_own = sum(own.values())
+        default_kernels = sorted(own)
         warm_up.warm_up(warm_up.OTHER_VARIANTS)
         wall = time.perf_counter() - start
     return {"numba": numba.__version__, "numpy": numpy.__version__,
             "python": platform.python_version(), "import": imported, "wall": wall,
             "default_wall": default_wall, "default_own": default_own,
+            "default_kernels": default_kernels,
             "own": own, "signatures": signatures,
             "threading": _threading_layer(numba), "threads": numba.config.NUMBA_NUM_THREADS}
 
@@ -134,7 +136,8 @@ def table(results: dict) -> list:
              "kernel's seconds are its own compile's, less those of the kernels it compiled "
              "within it, over all its signatures (the count in brackets where more than one). "
              "The machine is shared: the load average (1 min) before and after is given, and "
-             "the seconds are pessimistic.", ""]
+             "the seconds are pessimistic. Kernels marked * compile for the default settings "
+             "(in the warm-up's first part).", ""]
     for name in names:
         r = results[name]
         lines.append(f"- {LABELS[name]}: Python {r['python']}, numba {r['numba']} "
@@ -155,6 +158,7 @@ def table(results: dict) -> list:
                  + " | ".join(str(len(results[n]["own"])) for n in names) + " |")
     lines.append("| importing the filters (not compiling), s | "
                  + " | ".join(f"{results[n]['import']:.1f}" for n in names) + " |")
+    default = {k for r in results.values() for k in r["default_kernels"]}
     for kernel in kernels:
         cells = []
         for n in names:
@@ -162,7 +166,8 @@ def table(results: dict) -> list:
             count = results[n]["signatures"].get(kernel, 0)
             cells.append("—" if seconds is None else
                          f"{seconds:.2f}" + (f" ({count})" if count > 1 else ""))
-        lines.append(f"| `{kernel}` | " + " | ".join(cells) + " |")
+        mark = " *" if kernel in default else ""
+        lines.append(f"| `{kernel}`{mark} | " + " | ".join(cells) + " |")
     return lines
 
 
