@@ -82,12 +82,11 @@ EVERY_KERNEL, DEFAULT_KERNELS = "every kernel", "the default settings' kernels"
 """What a warm-up compiles (:mod:`muscle_mss.filters.warm_up`): every kernel, or only those a
 run with the default settings calls (the demo's, compiled first by ``./demo.sh``). Each has a
 marker of its own; every kernel compiled covers the default settings' too."""
-COMPILE_SECONDS = {EVERY_KERNEL: 120.0, DEFAULT_KERNELS: 90.0}
+COMPILE_SECONDS = {EVERY_KERNEL: 85.0, DEFAULT_KERNELS: 55.0}
 """Seconds a cold compile took on the shared 2-core development machine (the warm-up's wall
-time, load average 1): every kernel in two processes 96 s with numba 0.68, 118 s with numba
-0.56 (in one process, as ParaView compiles, 125 / 146 s; benchmarks/results/compile.md has the
-one-process table); the default settings' 86-94 / 76 s. The notice's estimate until this
-machine has measured its own (:func:`compile_estimate`)."""
+time in one process, load average 1; benchmarks/results/compile.md): every kernel 72 s with
+numba 0.68, 82 s with numba 0.56; the default settings' 51 / 53 s. The notice's estimate until
+this machine has measured its own (:func:`compile_estimate`)."""
 WARM_PREFIX = {EVERY_KERNEL: "warm-", DEFAULT_KERNELS: "defaults-warm-"}
 
 
