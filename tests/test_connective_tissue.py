@@ -156,6 +156,22 @@ def test_iteration_cap_times_ten_gives_the_same_particles_with_tissue(bent):
     assert np.linalg.norm(a.positions - tight.positions, axis=1).max() < 5e-3
 
 
+@pytest.mark.parametrize("springs", ["co-rotational", SPRINGS_HOOKE])
+@pytest.mark.parametrize("method", [METHOD_QUASI_STATIC, METHOD_RELAXATION])
+def test_no_tissue_adds_nothing_whatever_its_along_fraction(bent, method, springs):
+    """ConnectiveTissue 0 is the model without tissue: no stiffness on any particle, no share,
+    and the along-fibre fraction, which only shapes a tissue that exists, changes no bit of
+    the answer (both methods, both spring energies)."""
+    assert not tissue_stiffness(bent, np.arange(len(bent.fixed)), bent.fixed, 0.0).any()
+    results = [solver.solve(bent, settings=SolverSettings.build(
+        method=method, springs=springs, iterations=300, connective_tissue=0.0,
+        tissue_along=along)) for along in (1.0, 0.1, 0.0)]
+    for result in results:
+        assert not result.tissue_share.any()
+        np.testing.assert_array_equal(result.positions, results[0].positions)
+    assert np.linalg.norm(results[0].positions - bent.positions, axis=1).max() > 0.1
+
+
 @pytest.mark.parametrize("method", [METHOD_QUASI_STATIC, METHOD_RELAXATION])
 def test_model_at_rest_stays_at_rest_with_tissue(method):
     model = slab(REFERENCE_PARTICLES)         # posed = rest: springs and tissue at rest
