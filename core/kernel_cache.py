@@ -85,8 +85,9 @@ marker of its own; every kernel compiled covers the default settings' too."""
 COMPILE_SECONDS = {EVERY_KERNEL: 85.0, DEFAULT_KERNELS: 55.0}
 """Seconds a cold compile took on the shared 2-core development machine (the warm-up's wall
 time in one process, load average 1; benchmarks/results/compile.md): every kernel 72 s with
-numba 0.68, 82 s with numba 0.56; the default settings' 51 / 53 s. The notice's estimate until
-this machine has measured its own (:func:`compile_estimate`)."""
+numba 0.68, 82 s with numba 0.56 (74 / 92 s in a fresh clone's ./setup.sh), the default
+settings' 51 / 53 s (54 s in ./demo.sh). The notice's estimate until this machine has measured
+its own (:func:`compile_estimate`)."""
 WARM_PREFIX = {EVERY_KERNEL: "warm-", DEFAULT_KERNELS: "defaults-warm-"}
 
 
