@@ -380,14 +380,14 @@ class MSSCollisionSolver(MuscleFilter):
     def _solve(self, model: MSSModel, bones, solids, prepared: PreparedModel):
         """The chosen method's solve against the bone spheres ``bones`` (``(centres, radii,
         bone)`` or Nones) or the bones as solids ``solids``; the quasi-static one warm started
-        from the last solution when the model (topology, rest state) and the properties are
-        unchanged."""
+        from the last solution when the model (topology, rest pose, stiffnesses; the rest
+        lengths may follow the pose) and the properties are unchanged."""
         progress = lambda f: self.progress(0.05 + 0.9 * f)  # noqa: E731
         settings = self.settings()
         if settings.method != METHOD_QUASI_STATIC:
             return solve(model, *bones, settings=settings, progress=progress,
                          prepared=prepared, bone_solids=solids)
-        key = (self._prepared_key, repr(settings), self.value("BoneSphereSpacing"),
+        key = (self._prepared_shape, repr(settings), self.value("BoneSphereSpacing"),
                self.choice("BoneContact"))
         start = None
         if self.value("WarmStart") and self._last is not None and self._last[0] == key:

@@ -335,6 +335,23 @@ def test_warm_start_starts_from_the_last_solution_and_agrees_with_a_cold_start(w
     assert np.median(distance) < 0.5
 
 
+def test_warm_start_also_where_the_fibres_shorten(small_scene):
+    """FibreShortening gives each pose its own rest lengths; WarmStart still starts from the
+    last solution there (it was silently a cold start), and both starts converge."""
+    times = small_scene.motion.times
+    poses = [posed_at(small_scene, t) for t in times[-4:-2]]    # fibres shortened at both
+    first_step = []
+    for warm_start in (True, False):
+        solver = MSSCollisionSolver()
+        solver.SetWarmStart(warm_start)
+        for model, bones in poses:
+            out, table = filter_solve(solver, model, bones)
+        assert solver.setup_counts["rest state"] == 1
+        assert V.field(table, A.CONVERGED) == 1
+        first_step.append(V.table_columns(table)["residual"][0])
+    assert first_step[0] != first_step[1]
+
+
 def test_a_time_point_gets_the_same_answer_whatever_was_solved_before(small_scene, walk):
     """The default (no warm start): the same pose solved alone, right after its neighbour and
     after a jump across the motion gives bitwise the same particles (so do MPI ranks and a
