@@ -9,7 +9,7 @@ surface vertices in bones are reported by the MVC Surface Deformer.
 from collections import namedtuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from scipy.spatial import cKDTree
 
 # The grid of max_penetration_pairs: cells of this many times the largest radius. On the full
@@ -134,19 +134,20 @@ def _cell_span(centre, reach, lower, cell, dims):
             min(int(np.floor((centre + reach - lower) / cell)), dims - 1))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _deepest_per_sphere(muscle, everyone, grid, out):
     """``out[i]``: deepest overlap (mm, >= 0) of sphere ``i`` of ``muscle`` (:class:`Spheres`)
     with the spheres ``everyone`` (all spheres sorted by their cell ``grid.keys``,
     :class:`CellGrid`) of other objects, pairs with a free sphere only; scans the cells within
     ``radii[i]`` plus the largest radius of sphere ``i``'s centre, a run of consecutive keys per
-    row of cells."""
+    row of cells. Serial: it runs once a time point, for the statistics (milliseconds), and a
+    parallel loop doubled its compile (2.2 s against 1.0 s)."""
     centres, radii, owner, free = muscle.centres, muscle.radii, muscle.owner, muscle.free
     sorted_centres, sorted_radii = everyone.centres, everyone.radii
     sorted_owner, sorted_free, sorted_keys = everyone.owner, everyone.free, grid.keys
     lower, cell, dims = grid.lower, grid.cell, grid.dims
     reach_all = sorted_radii.max() if len(sorted_radii) else 0.0
-    for i in prange(len(centres)):
+    for i in range(len(centres)):
         reach = radii[i] + reach_all
         a0, a1 = _cell_span(centres[i, 0], reach, lower[0], cell, dims[0])
         b0, b1 = _cell_span(centres[i, 1], reach, lower[1], cell, dims[1])
