@@ -7,11 +7,13 @@
 #     every later run and the tests load them from: the venv's first (the demo needs only
 #     those), then Debian's Python's (the one pvpython and pvbatch run). One after the other,
 #     not both at once: on two cores the two compiles slowed each other by 60-80 %.
-# ./demo.sh calls it as `./setup.sh --background`: only the kernels of the default settings
-# (the demo's) are compiled before it returns; the venv's others, then Debian's Python's, compile
-# in the background at the lowest priority (on the cores the demo leaves free; with one core,
-# before the demo), logged to .venv/warm-up.log. ./test.sh calls it plainly and so waits for
-# all of them, a background compile included (a lock: .venv/warm-up.lock).
+# ./demo.sh calls it as `./setup.sh --background`: it compiles nothing before it returns (the
+# demo compiles the default settings' kernels, which are all it needs, in a second process while
+# it writes its scene and prepares its first time point); once those are compiled, the venv's
+# other kernels, then Debian's Python's, compile in the background at the lowest priority (on
+# the cores the demo leaves free; with one core, before the demo), logged to
+# .venv/warm-up.log. ./test.sh calls it plainly and so waits for all of them, a background
+# compile included (a lock: .venv/warm-up.lock).
 # Safe to run again; silent when everything is there.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -44,13 +46,13 @@ debian_warm_up=(env PYTHONPATH="$PWD/plugin/shim" /usr/bin/python3 -m muscle_mss
                 --quiet)
 lock=.venv/warm-up.lock
 if [ "${1:-}" = "--background" ] && [ "$(nproc)" -ge 2 ]; then
-  "${venv_warm_up[@]}" --defaults
   all_warm="from muscle_mss.core import kernel_cache as k; assert k.is_warm()"
   if flock -n "$lock" true && ! { .venv/bin/python -c "$all_warm" && env \
       PYTHONPATH="$PWD/plugin/shim" /usr/bin/python3 -c "$all_warm"; } >/dev/null 2>&1; then
-    echo "setup: compiling the other kernels in the background (.venv/warm-up.log)" >&2
-    nohup flock "$lock" nice -n 19 bash -c "$(printf '%q ' "${venv_warm_up[@]}") && \
-$(printf '%q ' "${debian_warm_up[@]}")" >.venv/warm-up.log 2>&1 &
+    echo "setup: the kernels the demo does not use compile in the background after its own" \
+      "(.venv/warm-up.log)" >&2
+    nohup flock "$lock" nice -n 19 bash -c "$(printf '%q ' "${venv_warm_up[@]}") --after-defaults \
+&& $(printf '%q ' "${debian_warm_up[@]}")" >.venv/warm-up.log 2>&1 &
   fi   # else compiled already, or a background compile holds the lock
 else
   flock "$lock" "${venv_warm_up[@]}"

@@ -82,12 +82,12 @@ EVERY_KERNEL, DEFAULT_KERNELS = "every kernel", "the default settings' kernels"
 """What a warm-up compiles (:mod:`muscle_mss.filters.warm_up`): every kernel, or only those a
 run with the default settings calls (the demo's, compiled first by ``./demo.sh``). Each has a
 marker of its own; every kernel compiled covers the default settings' too."""
-COMPILE_SECONDS = {EVERY_KERNEL: 85.0, DEFAULT_KERNELS: 55.0}
+COMPILE_SECONDS = {EVERY_KERNEL: 85.0, DEFAULT_KERNELS: 50.0}
 """Seconds a cold compile took on the shared 2-core development machine (the warm-up's wall
 time in one process, load average 1; benchmarks/results/compile.md): every kernel 72 s with
 numba 0.68, 82 s with numba 0.56 (74 / 92 s in a fresh clone's ./setup.sh), the default
-settings' 51 / 53 s (54 s in ./demo.sh). The notice's estimate until this machine has measured
-its own (:func:`compile_estimate`)."""
+settings' 50 / 52 s (50 s in the demo's second process). The notice's estimate until this
+machine has measured its own (:func:`compile_estimate`)."""
 WARM_PREFIX = {EVERY_KERNEL: "warm-", DEFAULT_KERNELS: "defaults-warm-"}
 
 

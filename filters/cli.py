@@ -197,17 +197,20 @@ def timings_note(timings: dict) -> str:
 
 
 def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
-                   writing=None) -> list:
+                   writing=None, pipeline=None, start=None) -> list:
     """Run a whole motion with a progress bar; write summary, series index and pictures; print
     the summary table. ``writing``: a :class:`run_output.Writing` (default: every series, the
-    default compressor). Returns the summary rows."""
+    default compressor); ``pipeline``: the scene's, its kernels compiled
+    (:func:`prepared_pipeline`), else built here; ``start``: when the command started
+    (``time.perf_counter``). Returns the summary rows."""
     from . import motion_run, run_output
     from .output_folder import claim
     from .pictures import convergence_picture, poses_picture
 
     writing = writing or run_output.Writing()
-    start = wallclock.perf_counter()
-    compile_kernels(settings)
+    start = wallclock.perf_counter() if start is None else start
+    if pipeline is None:
+        compile_kernels(settings)
     bar = {}
 
     def on_step(result, done, total):
@@ -216,7 +219,7 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
 
     pipeline, rows = motion_run.run_motion(scene_folder, out, settings, on_step=on_step,
                                            series_names=writing.series,
-                                           compressor=writing.compressor)
+                                           compressor=writing.compressor, pipeline=pipeline)
     run_output.write_summary(out, rows)
     run_output.write_index(out, pipeline.times, series_names=writing.series)
     index = farthest_pose_index(scene.motion)
@@ -230,6 +233,24 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
                run_output.CONVERGENCE_PICTURE, run_output.POSES_PICTURE]
     print(f"wrote {out}: {', '.join(written)} in {wallclock.perf_counter() - start:.0f} s")
     return rows
+
+
+def compiling_meanwhile(settings: dict):
+    """A context that leaves the kernels a run with the filter ``settings`` needs compiled,
+    saying so on stderr: the default settings' in a second process while the body prepares
+    the run (``warm_up.compiling_beside``)."""
+    from .warm_up import compiling_beside, scope_for, stderr_notice
+    return compiling_beside(stderr_notice, scope_for(settings))
+
+
+def prepared_pipeline(scene_folder: str, settings: dict, index: int = 0):
+    """The pipeline of ``scene_folder`` with ``settings``, time point ``index`` prepared up to
+    its solve (``motion_run.prepare_time_point``): what a run does while its kernels compile
+    (:func:`compiling_meanwhile`)."""
+    from . import motion_run
+    pipeline = motion_run.build_pipeline(scene_folder, settings)
+    motion_run.prepare_time_point(pipeline, index)
+    return pipeline
 
 
 def compile_kernels(settings: dict | None = None) -> None:
@@ -257,11 +278,15 @@ def held_output_folder(out: str, overwrite: bool, study: bool = False):
 
 def cmd_demo(args) -> int:
     writing, settings = writing_from(args), settings_from(args)
+    start = wallclock.perf_counter()
     with held_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
         scene_folder = os.path.join(args.out, "scene")
-        scene = write_demo_scene(scene_folder, args.size, args.region)
-        print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> {scene_folder}")
-        run_and_report(scene_folder, args.out, settings, scene, writing)
+        with compiling_meanwhile(settings):
+            scene = write_demo_scene(scene_folder, args.size, args.region)
+            print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> "
+                  f"{scene_folder}", flush=True)
+            pipeline = prepared_pipeline(scene_folder, settings)
+        run_and_report(scene_folder, args.out, settings, scene, writing, pipeline, start)
     return 0
 
 
@@ -272,7 +297,10 @@ def cmd_run(args) -> int:
     print(f"{args.scene}: {scene_counts(scene)}")
     with held_output_folder(args.out, args.overwrite):
         if args.time is None:
-            run_and_report(args.scene, args.out, settings, scene, writing)
+            start = wallclock.perf_counter()
+            with compiling_meanwhile(settings):
+                pipeline = prepared_pipeline(args.scene, settings)
+            run_and_report(args.scene, args.out, settings, scene, writing, pipeline, start)
         else:
             run_time_point(args, settings, writing)
     return 0
@@ -281,9 +309,10 @@ def cmd_run(args) -> int:
 def run_time_point(args, settings, writing) -> None:
     """``muscle-mss run --time T``: solve and write the time point nearest T."""
     from . import motion_run, run_output
-    compile_kernels(settings)
-    pipeline = motion_run.build_pipeline(args.scene, settings)
-    index = time_point_index(pipeline.times, args.time)
+    with compiling_meanwhile(settings):
+        pipeline = motion_run.build_pipeline(args.scene, settings)
+        index = time_point_index(pipeline.times, args.time)
+        motion_run.prepare_time_point(pipeline, index)
     result = motion_run.solve_time_point(pipeline, index)
     run_output.write_time_point(result, args.out, writing.series, writing.compressor)
     run_output.write_summary(args.out, result.rows)

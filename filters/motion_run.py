@@ -107,6 +107,30 @@ def update_at(algorithm, port: int, t: float):
     return algorithm.GetOutputDataObject(port)
 
 
+def surfaces_of_posed_model(p: Pipeline, t: float) -> None:
+    """Run an MVC Surface Deformer and a Volume Error Probe wired as ``p``'s, but fed the posed,
+    unsolved model, at time ``t``: their kernels compile and the surfaces are bound (the MVC
+    weights kept in their disk store) without a solve."""
+    deformer, probe = MVCSurfaceDeformer(), VolumeErrorProbe()
+    for prop in deformer.PROPERTIES:
+        getattr(deformer, "Set" + prop.name)(getattr(p.deformer, "Get" + prop.name)())
+    for k in range(1, 5):
+        deformer.SetInputConnection(k, p.deformer.GetInputConnection(k, 0))
+    deformer.SetInputConnection(0, p.pose.GetOutputPort(0))
+    probe.SetInputConnection(0, deformer.GetOutputPort(0))
+    probe.SetInputConnection(1, p.probe.GetInputConnection(1, 0))
+    for algorithm, port in ((probe, 0), (probe, 1), (deformer, 1)):
+        update_at(algorithm, port, t)
+
+
+def prepare_time_point(p: Pipeline, index: int) -> None:
+    """Everything of time point ``index`` but the solve: the stages before the MSS Collision
+    Solver (which ``p`` keeps for the solve) and :func:`surfaces_of_posed_model`. Run while
+    the solver's kernels compile elsewhere (``warm_up.compiling_beside``)."""
+    update_at(p.pose, 0, p.times[index])
+    surfaces_of_posed_model(p, p.times[index])
+
+
 @dataclass
 class TimePointResult:
     """Everything computed for one time point (VTK objects are this step's own copies)."""
@@ -231,7 +255,7 @@ def time_block(count: int, k: int, parts: int) -> range:
 
 
 def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
-               series_names=SERIES, compressor=DEFAULT_COMPRESSOR):
+               series_names=SERIES, compressor=DEFAULT_COMPRESSOR, pipeline=None):
     """Compute the time points of a scene's motion and write their files.
 
     ``part = (k, K)`` computes the k-th of K contiguous blocks of time points (MPI rank k of
@@ -240,11 +264,14 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
     ``series_names`` and ``compressor``: what
     :func:`~muscle_mss.filters.run_output.write_time_point` writes, and how.
 
+    ``pipeline``: one :func:`build_pipeline` built for ``scene_folder`` and ``settings``
+    already (its first time point prepared: :func:`prepare_time_point`), else a new one.
+
     ``on_step(result, done, total)`` is called after each time point (progress bars). Returns the
     pipeline and the summary rows in time-point order; the caller writes ``summary.csv`` and the
     ``.pvd`` index (:mod:`~muscle_mss.filters.run_output`) once all time points exist.
     """
-    pipeline = build_pipeline(scene_folder, settings)
+    pipeline = pipeline or build_pipeline(scene_folder, settings)
     indices = time_block(len(pipeline.times), *part)
     os.makedirs(out, exist_ok=True)
     rows = []

@@ -4,7 +4,8 @@ A cold start compiles the core's kernels (1–2 minutes; README "The first run")
 them (:mod:`muscle_mss.core.kernel_cache`) in a folder per Python, Numba and NumPy, so this
 happens once per Python and version of the sources. :func:`ensure_compiled` is called by the
 entry points, never by the filters themselves (the warm-up runs them): the CLI and the batch
-before they solve, the ParaView proxies (``muscle_mss.plugin.paraview_proxies``) before a filter
+before they solve (the CLI, for a run with the default settings, while it prepares the run:
+:func:`compiling_beside`), the ParaView proxies (``muscle_mss.plugin.paraview_proxies``) before a filter
 executes, and ``muscle_mss.filters`` when a script takes a filter class from it. When the cache
 is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`, compiles every kernel
 by running tiny solves through the filter chain (the default settings first, then each other
@@ -14,14 +15,16 @@ start itself again (not in ParaView, pvpython or pvbatch), a second process comp
 surfaces' kernels and the quasi-static method's meanwhile (:func:`compile_ahead`).
 ``./setup.sh`` runs it for the venv, then for Debian's Python::
 
-    python -m muscle_mss.filters.warm_up [--quiet] [--defaults]
+    python -m muscle_mss.filters.warm_up [--quiet] [--defaults | --after-defaults]
 
-``--defaults`` compiles only the kernels of a run with the default settings (``./demo.sh``
-first, so that the demo starts solving as soon as its own kernels are there; the CLI asks for
-no more when a run sets nothing else, :func:`scope_for`).
+``--defaults`` compiles only the kernels of a run with the default settings (what the demo
+needs; the CLI asks for no more when a run sets nothing else, :func:`scope_for`);
+``--after-defaults`` every kernel once those are compiled (``./demo.sh``'s background compile,
+after the demo's own).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
@@ -93,11 +96,8 @@ def warm_up(variants=VARIANTS, surfaces_alone=False) -> float:
         write_scene(scene, folder)
         if surfaces_alone:
             pipeline = motion_run.build_pipeline(folder, DEFAULT_VARIANTS[0])
-            pipeline.deformer.SetInputConnection(0, pipeline.pose.GetOutputPort(0))
             t = pipeline.times[len(pipeline.times) // 2]
-            for algorithm, port in ((pipeline.probe, 0), (pipeline.probe, 1),
-                                    (pipeline.deformer, 1)):
-                motion_run.update_at(algorithm, port, t)
+            motion_run.surfaces_of_posed_model(pipeline, t)
         for settings in variants:
             pipeline = motion_run.build_pipeline(folder, settings)
             motion_run.solve_time_point(pipeline, len(pipeline.times) // 2)
@@ -201,6 +201,39 @@ def ensure_compiled(report, scope: str = kernel_cache.EVERY_KERNEL) -> bool:
     return True
 
 
+@contextlib.contextmanager
+def compiling_beside(report, scope: str = kernel_cache.EVERY_KERNEL):
+    """Leave the body with the kernels of ``scope`` compiled, as :func:`ensure_compiled` does;
+    the default settings' kernels, when this Python has not compiled them and can start
+    itself (:func:`_can_start_itself`), compile in a second process while the body runs
+    (reporting on this process's stderr; ``report`` is then used only when it fails and this
+    one compiles). The body should prepare what needs no solver kernel: a scene to write, a
+    time point's stages before the solver (``motion_run.prepare_time_point``), on the other
+    core, Numba's parallel loops here kept to one thread meanwhile. Every kernel compiles here
+    first (its warm-up takes both cores already: :func:`compile_ahead`)."""
+    if (scope != kernel_cache.DEFAULT_KERNELS or _settled[kernel_cache.EVERY_KERNEL]
+            or _settled[scope] or kernel_cache.is_warm(scope=scope)
+            or not _can_start_itself()):
+        ensure_compiled(report, scope)
+        yield
+        return
+    import numba
+    helper = subprocess.Popen([sys.executable, "-m", __name__, "--defaults", "--quiet"])
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    except BaseException:
+        helper.terminate()
+        raise
+    finally:
+        numba.set_num_threads(threads)
+        helper.wait()
+    if helper.returncode != 0:
+        ensure_compiled(report, scope)
+    _settled[scope] = True
+
+
 def stderr_notice(text: str) -> None:
     """Show a compile notice on stderr (the CLI, the batch)."""
     print(text, file=sys.stderr, flush=True)
@@ -212,16 +245,36 @@ def output_window_notice(text: str) -> None:
     vtkOutputWindow.GetInstance().DisplayWarningText(f"Muscle MSS: {text}\n")
 
 
+AFTER_DEFAULTS_WAIT = 300.0
+"""Seconds ``--after-defaults`` waits at most for the default settings' kernels (a demo
+compiling them: about a minute) before it compiles them itself."""
+
+
+def wait_for_defaults(limit: float = AFTER_DEFAULTS_WAIT, poll: float = 2.0) -> bool:
+    """Wait until the default settings' kernels are compiled (True) or ``limit`` seconds have
+    passed (False)."""
+    end = time.monotonic() + limit
+    while not kernel_cache.is_warm(scope=kernel_cache.DEFAULT_KERNELS):
+        if time.monotonic() >= end:
+            return False
+        time.sleep(poll)
+    return True
+
+
 def main(argv=None) -> int:
-    """``python -m muscle_mss.filters.warm_up [--quiet] [--defaults]``: compile (or find
-    compiled) every kernel, or with ``--defaults`` those a run with the default settings calls
-    (``./demo.sh`` before the demo); ``--quiet`` says nothing when they are compiled already
+    """``python -m muscle_mss.filters.warm_up [--quiet] [--defaults | --after-defaults]``:
+    compile (or find compiled) every kernel, or with ``--defaults`` those a run with the
+    default settings calls (the demo's, :func:`compiling_beside`); ``--after-defaults``: every
+    kernel once the default settings' are compiled (``./demo.sh``'s background compile:
+    :func:`wait_for_defaults`); ``--quiet`` says nothing when they are compiled already
     (``./setup.sh`` run again)."""
     argv = sys.argv[1:] if argv is None else argv
     if "--second-share" in argv:        # compile_ahead's second process
         warm_up(shares(kernel_cache.EVERY_KERNEL)[1], surfaces_alone=True)
         return 0
     scope = kernel_cache.DEFAULT_KERNELS if "--defaults" in argv else kernel_cache.EVERY_KERNEL
+    if "--after-defaults" in argv:
+        wait_for_defaults()
     if not ensure_compiled(stderr_notice, scope) and "--quiet" not in argv:
         print(f"numeric kernels already compiled in {kernel_cache.kernel_cache_dir()}",
               file=sys.stderr)

@@ -240,3 +240,94 @@ def test_the_second_share_runs_the_surfaces_without_a_solve(monkeypatch):
     monkeypatch.setattr(warm_up.motion_run.MVCSurfaceDeformer, "RequestData", counted)
     warm_up.warm_up((), surfaces_alone=True)
     assert surfaces and not solved
+
+
+class _Helper:
+    """A stand-in for the second process of ``compiling_beside``: records how it was started
+    and what happened to it."""
+
+    def __init__(self, returncode):
+        self.returncode, self.terminated, self.args = returncode, False, None
+
+    def popen(self, args, **kwargs):
+        self.args = args
+        return self
+
+    def terminate(self):
+        self.terminated = True
+
+    def wait(self):
+        return self.returncode
+
+
+def _cold_defaults(monkeypatch, tmp_path, returncode=0):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    _unsettled(monkeypatch)
+    monkeypatch.setattr(warm_up, "_can_start_itself", lambda: True)
+    helper = _Helper(returncode)
+    monkeypatch.setattr(warm_up.subprocess, "Popen", helper.popen)
+    in_place = []
+    monkeypatch.setattr(warm_up, "ensure_compiled",
+                        lambda report, scope: in_place.append(scope) or True)
+    return helper, in_place
+
+
+def test_the_default_settings_kernels_compile_in_a_second_process_while_the_body_runs(
+        tmp_path, monkeypatch):
+    """A run with the default settings prepares on one core (Numba's parallel loops on one
+    thread) while a second process compiles its kernels on the other; the body is left with
+    them compiled and the thread count restored."""
+    import numba
+    helper, in_place = _cold_defaults(monkeypatch, tmp_path)
+    threads = numba.get_num_threads()
+    seen = []
+    with warm_up.compiling_beside(print, DEFAULTS):
+        seen.append((helper.args, numba.get_num_threads()))
+    assert seen == [([sys.executable, "-m", "muscle_mss.filters.warm_up", "--defaults",
+                      "--quiet"], 1)]
+    assert numba.get_num_threads() == threads and in_place == [] and not helper.terminated
+    assert warm_up._settled[DEFAULTS]
+
+
+def test_a_failed_second_process_leaves_the_compile_to_this_one(tmp_path, monkeypatch):
+    helper, in_place = _cold_defaults(monkeypatch, tmp_path, returncode=1)
+    with warm_up.compiling_beside(print, DEFAULTS):
+        assert helper.args is not None
+    assert in_place == [DEFAULTS]
+
+
+def test_a_body_that_fails_stops_the_second_process(tmp_path, monkeypatch):
+    helper, in_place = _cold_defaults(monkeypatch, tmp_path)
+    with pytest.raises(ValueError):
+        with warm_up.compiling_beside(print, DEFAULTS):
+            raise ValueError("a scene refused")
+    assert helper.terminated and in_place == []
+
+
+@pytest.mark.parametrize("case", ["every kernel", "compiled", "one core"])
+def test_no_second_process_for_every_kernel_compiled_kernels_or_one_core(case, tmp_path,
+                                                                        monkeypatch):
+    """Every kernel's warm-up takes both cores itself; compiled kernels need none; where this
+    Python cannot start itself (ParaView) or has one core, it compiles before the body."""
+    helper, in_place = _cold_defaults(monkeypatch, tmp_path)
+    scope = EVERY if case == "every kernel" else DEFAULTS
+    if case == "compiled":
+        kernel_cache.mark_warm(40.0, scope=DEFAULTS)
+    if case == "one core":
+        monkeypatch.setattr(warm_up, "_can_start_itself", lambda: False)
+    order = []
+    monkeypatch.setattr(warm_up, "ensure_compiled",
+                        lambda report, scope: order.append(("compiled", scope)))
+    with warm_up.compiling_beside(print, scope):
+        order.append("body")
+    assert helper.args is None and order == [("compiled", scope), "body"]
+
+
+def test_the_background_compile_waits_for_the_demos_kernels_at_most_its_limit(tmp_path,
+                                                                              monkeypatch):
+    """``--after-defaults`` (./demo.sh's background compile) starts once the demo's own
+    kernels are compiled, or after its limit when nobody compiles them."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    assert not warm_up.wait_for_defaults(limit=0.2, poll=0.05)
+    kernel_cache.mark_warm(40.0, scope=DEFAULTS)
+    assert warm_up.wait_for_defaults(limit=0.0)
