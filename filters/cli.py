@@ -238,18 +238,19 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
 def compiling_meanwhile(settings: dict):
     """A context that leaves the kernels a run with the filter ``settings`` needs compiled,
     saying so on stderr: the default settings' in a second process while the body prepares
-    the run (``warm_up.compiling_beside``)."""
+    the run (``warm_up.compiling_beside``). It gives True while that process compiles."""
     from .warm_up import compiling_beside, scope_for, stderr_notice
     return compiling_beside(stderr_notice, scope_for(settings))
 
 
-def prepared_pipeline(scene_folder: str, settings: dict, index: int = 0):
-    """The pipeline of ``scene_folder`` with ``settings``, time point ``index`` prepared up to
-    its solve (``motion_run.prepare_time_point``): what a run does while its kernels compile
-    (:func:`compiling_meanwhile`)."""
+def prepared_pipeline(scene_folder: str, settings: dict, compiling: bool, index: int = 0):
+    """The pipeline of ``scene_folder`` with ``settings``; while its kernels compile
+    (``compiling``, as :func:`compiling_meanwhile` says), time point ``index`` prepared up to
+    its solve (``motion_run.prepare_time_point``)."""
     from . import motion_run
     pipeline = motion_run.build_pipeline(scene_folder, settings)
-    motion_run.prepare_time_point(pipeline, index)
+    if compiling:
+        motion_run.prepare_time_point(pipeline, index)
     return pipeline
 
 
@@ -281,11 +282,11 @@ def cmd_demo(args) -> int:
     start = wallclock.perf_counter()
     with held_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
         scene_folder = os.path.join(args.out, "scene")
-        with compiling_meanwhile(settings):
+        with compiling_meanwhile(settings) as compiling:
             scene = write_demo_scene(scene_folder, args.size, args.region)
             print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> "
                   f"{scene_folder}", flush=True)
-            pipeline = prepared_pipeline(scene_folder, settings)
+            pipeline = prepared_pipeline(scene_folder, settings, compiling)
         run_and_report(scene_folder, args.out, settings, scene, writing, pipeline, start)
     return 0
 
@@ -298,8 +299,8 @@ def cmd_run(args) -> int:
     with held_output_folder(args.out, args.overwrite):
         if args.time is None:
             start = wallclock.perf_counter()
-            with compiling_meanwhile(settings):
-                pipeline = prepared_pipeline(args.scene, settings)
+            with compiling_meanwhile(settings) as compiling:
+                pipeline = prepared_pipeline(args.scene, settings, compiling)
             run_and_report(args.scene, args.out, settings, scene, writing, pipeline, start)
         else:
             run_time_point(args, settings, writing)
@@ -309,10 +310,11 @@ def cmd_run(args) -> int:
 def run_time_point(args, settings, writing) -> None:
     """``muscle-mss run --time T``: solve and write the time point nearest T."""
     from . import motion_run, run_output
-    with compiling_meanwhile(settings):
+    with compiling_meanwhile(settings) as compiling:
         pipeline = motion_run.build_pipeline(args.scene, settings)
         index = time_point_index(pipeline.times, args.time)
-        motion_run.prepare_time_point(pipeline, index)
+        if compiling:
+            motion_run.prepare_time_point(pipeline, index)
     result = motion_run.solve_time_point(pipeline, index)
     run_output.write_time_point(result, args.out, writing.series, writing.compressor)
     run_output.write_summary(args.out, result.rows)

@@ -5,14 +5,14 @@ them (:mod:`muscle_mss.core.kernel_cache`) in a folder per Python, Numba and Num
 happens once per Python and version of the sources. :func:`ensure_compiled` is called by the
 entry points, never by the filters themselves (the warm-up runs them): the CLI and the batch
 before they solve (the CLI, for a run with the default settings, while it prepares the run:
-:func:`compiling_beside`), the ParaView proxies (``muscle_mss.plugin.paraview_proxies``) before a filter
-executes, and ``muscle_mss.filters`` when a script takes a filter class from it. When the cache
-is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`, compiles every kernel
-by running tiny solves through the filter chain (the default settings first, then each other
-method, collision structure and blending, so that a later choice compiles nothing either) and
-records the cache as warm. Numba compiles on one core: for every kernel, where the Python can
-start itself again (not in ParaView, pvpython or pvbatch), a second process compiles the
-surfaces' kernels and the quasi-static method's meanwhile (:func:`compile_ahead`).
+:func:`compiling_beside`), the ParaView proxies (``muscle_mss.plugin.paraview_proxies``) before
+a filter executes, and ``muscle_mss.filters`` when a script takes a filter class from it. When
+the cache is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`, compiles
+every kernel by running tiny solves through the filter chain (the default settings first, then
+each other method, collision structure and blending, so that a later choice compiles nothing
+either) and records the cache as warm. Numba compiles on one core: for every kernel, where the
+Python can start itself again (not in ParaView, pvpython or pvbatch), a second process compiles
+the surfaces' kernels and the quasi-static method's meanwhile (:func:`compile_ahead`).
 ``./setup.sh`` runs it for the venv, then for Debian's Python::
 
     python -m muscle_mss.filters.warm_up [--quiet] [--defaults | --after-defaults]
@@ -203,26 +203,27 @@ def ensure_compiled(report, scope: str = kernel_cache.EVERY_KERNEL) -> bool:
 
 @contextlib.contextmanager
 def compiling_beside(report, scope: str = kernel_cache.EVERY_KERNEL):
-    """Leave the body with the kernels of ``scope`` compiled, as :func:`ensure_compiled` does;
-    the default settings' kernels, when this Python has not compiled them and can start
-    itself (:func:`_can_start_itself`), compile in a second process while the body runs
-    (reporting on this process's stderr; ``report`` is then used only when it fails and this
-    one compiles). The body should prepare what needs no solver kernel: a scene to write, a
-    time point's stages before the solver (``motion_run.prepare_time_point``), on the other
-    core, Numba's parallel loops here kept to one thread meanwhile. Every kernel compiles here
-    first (its warm-up takes both cores already: :func:`compile_ahead`)."""
+    """Leave the body with the kernels of ``scope`` compiled, as :func:`ensure_compiled` does; the
+    default settings' kernels, when this Python has not compiled them and can start itself
+    (:func:`_can_start_itself`), compile in a second process while the body runs (reporting on
+    this process's stderr; ``report`` is then used only when it fails and this one compiles).
+    Gives the body True in that case, else False (compiled before it). The body should prepare
+    what needs no solver kernel: a scene to write, a time point's stages before the solver
+    (``motion_run.prepare_time_point``), on the other core, Numba's parallel loops here kept to
+    one thread meanwhile. Every kernel compiles here first (its warm-up takes both cores
+    already: :func:`compile_ahead`)."""
     if (scope != kernel_cache.DEFAULT_KERNELS or _settled[kernel_cache.EVERY_KERNEL]
             or _settled[scope] or kernel_cache.is_warm(scope=scope)
             or not _can_start_itself()):
         ensure_compiled(report, scope)
-        yield
+        yield False
         return
     import numba
     helper = subprocess.Popen([sys.executable, "-m", __name__, "--defaults", "--quiet"])
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        yield
+        yield True
     except BaseException:
         helper.terminate()
         raise

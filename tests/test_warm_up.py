@@ -281,10 +281,10 @@ def test_the_default_settings_kernels_compile_in_a_second_process_while_the_body
     helper, in_place = _cold_defaults(monkeypatch, tmp_path)
     threads = numba.get_num_threads()
     seen = []
-    with warm_up.compiling_beside(print, DEFAULTS):
-        seen.append((helper.args, numba.get_num_threads()))
-    assert seen == [([sys.executable, "-m", "muscle_mss.filters.warm_up", "--defaults",
-                      "--quiet"], 1)]
+    with warm_up.compiling_beside(print, DEFAULTS) as compiling:
+        seen.append((compiling, helper.args, numba.get_num_threads()))
+    assert seen == [(True, [sys.executable, "-m", "muscle_mss.filters.warm_up", "--defaults",
+                            "--quiet"], 1)]
     assert numba.get_num_threads() == threads and in_place == [] and not helper.terminated
     assert warm_up._settled[DEFAULTS]
 
@@ -318,9 +318,9 @@ def test_no_second_process_for_every_kernel_compiled_kernels_or_one_core(case, t
     order = []
     monkeypatch.setattr(warm_up, "ensure_compiled",
                         lambda report, scope: order.append(("compiled", scope)))
-    with warm_up.compiling_beside(print, scope):
-        order.append("body")
-    assert helper.args is None and order == [("compiled", scope), "body"]
+    with warm_up.compiling_beside(print, scope) as compiling:
+        order.append(("body", compiling))
+    assert helper.args is None and order == [("compiled", scope), ("body", False)]
 
 
 def test_the_background_compile_waits_for_the_demos_kernels_at_most_its_limit(tmp_path,
