@@ -2,7 +2,8 @@
 intermuscular septa and fascia tie every muscle to its neighbours and to the tissue around it,
 which moves with the skeleton. Modelled as a spring of stiffness ``k_i`` holding each free
 particle ``i`` toward its *target* ``t_i``, its rest position carried by the pose (the Rigid
-Pose Transform's posed position):
+Pose Transform's posed position; in a muscle that ``FibreShortening`` shortens, its rest shape
+shortened between its attachments: :func:`~muscle_mss.core.fibre_shortening.shortened_target`):
 
     E_tissue = sum_i k_i |x_i - t_i|^2 / 2        (g mm^2 / s^2)
 
@@ -69,16 +70,18 @@ def check_along(along: float) -> None:
                              "the tissue's stiffness across the fibres, from 0 to 1")
 
 
-def tissue_targets(model, order, posed, along: float) -> np.ndarray:
-    """The kernels' targets (module docstring): ``posed`` (3, n) mm, the posed particles in the
-    solver's ``order``, as they are for ``along`` 1; else stacked on ``sqrt(1 - along)`` times
-    each particle's fibre direction at the posed positions (6, n)."""
-    posed = np.ascontiguousarray(posed, dtype=np.float64)
+def tissue_targets(model, order, along: float) -> np.ndarray:
+    """The kernels' targets (module docstring): the targets ``t_i``
+    (``model.tissue_target_positions()``) in the solver's ``order`` (3, n) mm, as they are for
+    ``along`` 1; else stacked on ``sqrt(1 - along)`` times each particle's fibre direction
+    there (6, n)."""
+    target = model.tissue_target_positions()
+    placed = np.ascontiguousarray(target[order].T)
     if along >= 1.0:
-        return posed
+        return placed
     from .fibre_shortening import fibre_tangents
-    direction = fibre_tangents(model, model.positions)[order].T
-    return np.ascontiguousarray(np.vstack([posed, np.sqrt(1.0 - along) * direction]))
+    direction = fibre_tangents(model, target)[order].T
+    return np.ascontiguousarray(np.vstack([placed, np.sqrt(1.0 - along) * direction]))
 
 
 @njit(cache=True, parallel=True)
@@ -108,16 +111,16 @@ def add_tissue_energy(x, target, stiffness, offsets, gradient, energy):
 def tissue_share(model, positions, ratio: float, along: float, tension=None) -> np.ndarray:
     """(M,) %: per muscle, the tissue's force ``sum_i |f_i|`` (``k_i |x_i - t_i|`` isotropic)
     over the springs' ``sum_s |t_s|`` at the solved ``positions`` (n, 3) mm (input order),
-    targets the model's posed positions; how much of the load the tissue carries. ``tension``
-    (S,) g mm/s^2 each spring's force (omitted: Hooke's, ``k_s |l_s - l0_s|``). 0 where
-    ``ratio`` is 0 or nothing pulls, ``inf`` where only the tissue does."""
+    targets ``model.tissue_target_positions()``; how much of the load the tissue carries.
+    ``tension`` (S,) g mm/s^2 each spring's force (omitted: Hooke's, ``k_s |l_s - l0_s|``). 0
+    where ``ratio`` is 0 or nothing pulls, ``inf`` where only the tissue does."""
     offsets = np.asarray(model.offsets, dtype=np.int64)
     m_count = len(offsets) - 1
     if ratio == 0.0:
         return np.zeros(m_count)
     n = int(offsets[-1])
     x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    target = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)
+    target = model.tissue_target_positions()
     k = tissue_stiffness(model, np.arange(n), model.fixed, ratio)
     muscle = np.repeat(np.arange(m_count), np.diff(offsets))
     d = x - target

@@ -39,7 +39,9 @@ class MSSModel:
     kept out of the solids); ``rest_vectors`` (S, 3) mm, each spring's vector from its first
     particle to its second in the springs' rest shape where that is not the rest pose
     (:mod:`~muscle_mss.core.fibre_shortening`'s shortened fibres; omitted:
-    :meth:`spring_rest_vectors`).
+    :meth:`spring_rest_vectors`); ``tissue_target`` (n, 3) mm, where the connective tissue
+    holds each particle when that is not its posed position (the shortened muscles' targets of
+    :mod:`~muscle_mss.core.fibre_shortening`; omitted: :meth:`tissue_target_positions`).
     """
 
     names: list
@@ -59,6 +61,13 @@ class MSSModel:
     rest_positions: np.ndarray | None = None
     in_bone_at_rest: np.ndarray | None = None
     rest_vectors: np.ndarray | None = None
+    tissue_target: np.ndarray | None = None
+
+    def tissue_target_positions(self) -> np.ndarray:
+        """(n, 3) float64 mm: where the connective tissue holds each particle,
+        ``tissue_target`` or the posed ``positions``."""
+        target = self.positions if self.tissue_target is None else self.tissue_target
+        return np.asarray(target, dtype=np.float64).reshape(-1, 3)
 
     def spring_rest_vectors(self) -> np.ndarray:
         """(S, 3) float64 mm: each spring's rest vector, ``rest_vectors``, or the rest pose's

@@ -234,7 +234,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     v = np.zeros_like(x)
     relaxation = settings.relaxation
     tissue = ((tissue_stiffness(model, prep.order, prep.fixed, settings.connective_tissue),
-               tissue_targets(model, prep.order, posed.T, settings.tissue_along))
+               tissue_targets(model, prep.order, settings.tissue_along))
               if settings.connective_tissue > 0.0 else ())
     mss = mss_state(x, v, np.zeros((3, 3, n)), prep.inv_mass, relaxation.time_step,
                     relaxation.drag, settings.bulk_modulus, prep.cages, offsets, *tissue)

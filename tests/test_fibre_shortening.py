@@ -6,7 +6,8 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from muscle_mss.core import solver
-from muscle_mss.core.fibre_shortening import (shortened_rest_lengths, shortened_springs,
+from muscle_mss.core.fibre_shortening import (TARGET_BLEND, shortened_rest_lengths,
+                                              shortened_springs, shortened_target,
                                               shortening_factors)
 from muscle_mss.core.settings import METHOD_QUASI_STATIC, SPRING_ENERGIES, SolverSettings
 
@@ -92,6 +93,64 @@ def test_a_slab_whose_ends_come_30_percent_closer_shortens_and_thickens_instead_
     lengths, chords = fibre_lengths(model, solved(model, False, springs))
     assert (lengths / chords).max() > 1.05
     assert (lengths / rest_lengths - 1.0).mean() > -0.2
+
+
+def folded(model, ratio):
+    """The slab with its far end moved to ``ratio`` of its length and its fibres keeping their
+    rest length by arching sideways (x), as the Rigid Pose Transform poses a muscle whose
+    attachments come closer (its particles carried by the bones, not shortened)."""
+    rest = model.rest_positions
+    u = rest[:, 2] / LENGTH
+    z = np.linspace(0.0, ratio * LENGTH, 4001)
+    height = LENGTH
+    for _ in range(60):                     # the arch's height that keeps the arc LENGTH long
+        arc = np.hypot(np.diff(z), np.diff(height * np.sin(np.pi * z / z[-1]))).sum()
+        height *= LENGTH / arc
+    positions = rest * [1.0, 1.0, ratio]
+    positions[:, 0] += height * np.sin(np.pi * u) * ~model.fixed
+    return type(model)(**{**model.__dict__, "positions": positions})
+
+
+def test_the_tissue_target_of_a_shortened_muscle_is_its_rest_shape_shortened_volume_kept():
+    """The connective tissue's target of a muscle whose ends come 30 % closer: the rest slab
+    contracted 0.7 times along its length and widened 1 / sqrt(0.7) times across, straight
+    between its ends, whatever arch the pose gave it; none where nothing shortens."""
+    model = folded(slab(PER_FIBRE), 0.7)
+    target = shortened_target(model)
+    rest = model.rest_positions
+    lengths, chords = fibre_lengths(model, target)
+    rest_lengths, _ = fibre_lengths(model, rest)
+    np.testing.assert_allclose(lengths, 0.7 * rest_lengths, rtol=1e-9)
+    np.testing.assert_allclose(lengths / chords, 1.0, rtol=1e-9)
+    for axis in (0, 1):
+        np.testing.assert_allclose(np.ptp(target[:, axis]), np.ptp(rest[:, axis]) / np.sqrt(0.7),
+                                   rtol=1e-9)
+    assert ConvexHull(target).volume == pytest.approx(ConvexHull(rest).volume, rel=1e-9)
+    assert shortened_springs(model).tissue_target is not None
+    for ratio in (1.2, 1.0):
+        assert shortened_target(posed(slab(PER_FIBRE), ratio)) is None
+    # just short of the rest length: nearly the posed pose (the blend starts smoothly)
+    barely = folded(slab(PER_FIBRE), 1.0 - 0.01 * TARGET_BLEND)
+    assert np.abs(shortened_target(barely) - barely.positions).max() < 0.01
+
+
+@pytest.mark.parametrize("springs", SPRING_ENERGIES)
+def test_with_the_tissue_an_arched_slab_30_percent_shorter_shortens_its_fibres(springs):
+    """The connective tissue (the default 0.1, weak along the fibres) holds the slab toward
+    its shortened rest shape, not toward the arch the pose gave it (arc / chord 1.43): the fibres
+    shorten 30 +- 3 % and stay straight; held toward the arch, they shortened 6-18 % and stayed
+    bent (arc / chord 1.20-1.35)."""
+    import dataclasses
+    model = shortened_springs(folded(slab(PER_FIBRE), 0.7))
+    rest_lengths, _ = fibre_lengths(model, model.rest_positions)
+    settings = SolverSettings.build(method=METHOD_QUASI_STATIC, tolerance=1e-4,
+                                    iterations=4000, connective_tissue=0.1, springs=springs)
+    lengths, chords = fibre_lengths(model, solver.solve(model, settings=settings).positions)
+    np.testing.assert_allclose(lengths / rest_lengths - 1.0, -0.3, atol=0.03)
+    assert (lengths / chords).max() <= 1.02
+    arch = dataclasses.replace(model, tissue_target=None)
+    lengths, chords = fibre_lengths(model, solver.solve(arch, settings=settings).positions)
+    assert (lengths / rest_lengths - 1.0).mean() > -0.2 and (lengths / chords).max() > 1.1
 
 
 def test_the_elbow_demos_shortening_muscles_shorten_at_130_degrees_with_the_property(tmp_path):

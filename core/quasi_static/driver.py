@@ -171,7 +171,7 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
                               contact_stiffness(model, prep, pre, settings), bone_solids,
-                              tissue_targets(model, prep.order, posed.T, settings.tissue_along))
+                              tissue_targets(model, prep.order, settings.tissue_along))
     outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
     x[:, pre.free] = outcome.position.T
     return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, outcome)
