@@ -47,7 +47,8 @@ by the bones' triangles, which the fields miss next to thin bones, is put on its
 sets (a sphere carried past a bone's shell of spheres is pushed on through it; the Table 1
 baseline). The solids are the default because they are also the faster
 (``benchmarks/results/bone_contact.md``). ``FibreShortening`` makes the springs' rest lengths
-follow fibres that shorten (:mod:`muscle_mss.core.fibre_shortening`).
+follow fibres that shorten, and the tissue's target a muscle that shortens
+(:mod:`muscle_mss.core.fibre_shortening`).
 """
 from __future__ import annotations
 
@@ -223,8 +224,10 @@ class MSSCollisionSolver(MuscleFilter):
                  "at rest (by the factor s), the springs' rest lengths along it follow (times "
                  "s along the fibres, 1 / sqrt(s) across, the rest volume kept), so a "
                  "shortening muscle shortens and thickens instead of keeping its fibre length "
-                 "and folding; lengthening fibres stretch as before. Both methods. On by "
-                 "default; off: the paper's springs (core/fibre_shortening.py).",
+                 "and folding; the connective tissue then holds such a muscle toward its rest "
+                 "shape shortened so, not toward its bent posed pose. Lengthening fibres "
+                 "stretch as before. Both methods. On by default; off: the paper's springs "
+                 "(core/fibre_shortening.py).",
                  group="Integration"),
         Property("CollisionStructure", "enum", STRUCTURE_HASH,
                  "How colliding spheres are found. spatial hash: a uniform grid with candidate "
