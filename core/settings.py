@@ -40,12 +40,12 @@ SPRING_ENERGIES = (SPRINGS_HOOKE, SPRINGS_COROTATIONAL)
 
 # The quasi-static equilibrium (with the tissue and the co-rotational springs below): every
 # time point of both demo motions converges at N = 20, and what a user sees improves on the
-# paper relaxation's 500 iterations (surface volume error over the thigh walk 0.31 / 2.21 %
-# mean / max against 0.82 / 5.14 %, the elbow 0.49 / 2.05 % against 1.12 / 4.78 %, no sphere
+# paper relaxation's 500 iterations (surface volume error over the thigh walk 0.27 / 2.02 %
+# mean / max against 0.82 / 5.14 %, the elbow 0.32 / 1.28 % against 1.12 / 4.78 %, no sphere
 # wedged at 130 degrees), at 2-3 times its seconds (docs/solver-notes.md, "The default").
 DEFAULT_METHOD = METHOD_QUASI_STATIC
 # The iteration cap, for both methods. The quasi-static solves of both demo motions stop at
-# their tolerance within it (at most 502 iterations at N = 20, 770 at N = 80); the paper
+# their tolerance within it (at most 469 iterations at N = 20, 587 at N = 80); the paper
 # relaxation runs all of them unless its Termination says otherwise (the paper ran 500).
 DEFAULT_ITERATIONS = 2000
 DEFAULT_TIME_BUDGET = 1.0               # s
