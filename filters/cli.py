@@ -131,8 +131,9 @@ class ProgressBar:
 
 def summary_table(rows) -> str:
     """Per muscle over the whole motion: mean and max volume error, max fibre strain, how its
-    fibres follow its end-to-end length (:func:`~.study.follow_slope`) and their largest arc /
-    chord (above 1 a fibre bends or folds), max sphere overlap, the deepest surface vertex newly
+    fibres follow its end-to-end length (:func:`~.study.follow_slope`), their largest arc /
+    chord (above 1 a fibre bends or folds) and bend (that over its rest value: above 1 a fibre
+    bends more than at rest), max sphere overlap, the deepest surface vertex newly
     in a bone as written (after the MVC Surface Deformer's push out) and before the push, the
     largest drift of a surface vertex off its cage (mm), the largest share of the connective
     tissue in the muscle's load (%), mean
@@ -143,7 +144,8 @@ def summary_table(rows) -> str:
     for r in rows:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
-              f"{'follows':>7s} {'arc/chord':>9s} {'overlap mm':>10s} {'in bone mm':>10s} "
+              f"{'follows':>7s} {'arc/chord':>9s} {'bend':>5s} {'overlap mm':>10s} "
+              f"{'in bone mm':>10s} "
               f"{'pushed mm':>10s} {'drift mm':>8s} "
               f"{'tissue %':>8s} {'iters':>6s} {'s/time':>7s}")
     lines = [header, "-" * len(header)]
@@ -154,6 +156,7 @@ def summary_table(rows) -> str:
         lines.append(f"{name:28s} {means[-1]:14.2f} {max(err):7.2f} "
                      f"{max(float(r[A.MAX_FIBRE_STRAIN]) for r in rs):10.3f} "
                      f"{_or_dash(follow_slope(rs), 7, 2)} {_deepest(rs, A.MAX_ARC_CHORD, 9, 2)} "
+                     f"{_deepest(rs, A.MAX_FIBRE_BEND, 5, 2)} "
                      f"{max(float(r[A.SPHERE_OVERLAP_MM]) for r in rs):10.3f} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM)} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_MM)} "

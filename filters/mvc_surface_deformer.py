@@ -477,6 +477,8 @@ def _muscle_outputs(name, binding: MuscleBinding, current, deformed, report):
     with np.errstate(divide="ignore", invalid="ignore"):   # a closed fibre has no chord
         V.set_cell_array(polylines, A.FIBRE_END_STRAIN, chords / binding.rest_chords - 1.0)
         V.set_cell_array(polylines, A.FIBRE_ARC_CHORD, lengths / chords)
+        V.set_cell_array(polylines, A.FIBRE_BEND, lengths / chords * binding.rest_chords
+                         / binding.rest_lengths)
     if binding.fibre_grid is not None:
         polylines.GetCellData().AddArray(binding.fibre_grid)
     return surface, polylines

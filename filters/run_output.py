@@ -34,7 +34,7 @@ from . import output_folder as folder
 
 SUMMARY_COLUMNS = (A.TIME, A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
                    A.MEAN_FIBRE_STRAIN, A.MAX_FIBRE_STRAIN, A.MEAN_END_TO_END_STRAIN,
-                   A.MAX_ARC_CHORD, A.SPHERE_OVERLAP_MM,
+                   A.MAX_ARC_CHORD, A.MAX_FIBRE_BEND, A.SPHERE_OVERLAP_MM,
                    A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
                    A.NEW_IN_BONE_DEPTH_AFTER_MM, A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM,
                    *A.FREE_IN_BONE_FIELDS, A.TISSUE_SHARE_PCT,
@@ -43,7 +43,9 @@ SUMMARY_COLUMNS = (A.TIME, A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT
 over that at rest, minus 1 (how much the muscle's origin-insertion length changed, to set
 beside ``mean_fibre_strain``, how much its fibres did); ``max_arc_chord``: the largest ratio of
 a fibre's length to its end-to-end distance (1 straight; a fibre that folds instead of
-shortening goes well above); ``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
+shortening goes well above); ``max_fibre_bend``: the largest ratio of a fibre's arc / chord to
+its arc / chord at rest (1: as curved as at rest, so a fibre curved at rest is not counted as
+folded; above: it folds, or wraps a bone the motion brings against it); ``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
 other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
 (``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed
 surface vertices inside a bone they were outside at rest, before and after the MVC Surface

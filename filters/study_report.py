@@ -268,7 +268,7 @@ def muscle_rows(study: Study) -> list:
     series = study.motion
     rows = [("muscle", "fibre strain % (mean: least / largest over time)",
              "path change % (least / largest)", "fibres follow the path (slope)",
-             "largest arc/chord (at rest)",
+             "largest arc/chord (at rest), largest bend (arc/chord over its rest value)",
              f"time points with a fibre above {ARC_CHORD_LIMIT:g}",
              "volume error % (mean / max)")]
     for k, name in enumerate(series.muscles):
@@ -277,7 +277,8 @@ def muscle_rows(study: Study) -> list:
         own = [r for r in series.rows if r[A.MUSCLE] == name]
         rows.append((name, f"{mean.min():.1f} / {mean.max():.1f}",
                      f"{path.min():.1f} / {path.max():.1f}", follow_slope(own),
-                     f"{series.arc_chord[:, k].max():.2f} ({series.rest_arc_chord[k]:.2f})",
+                     f"{series.arc_chord[:, k].max():.2f} ({series.rest_arc_chord[k]:.2f}), "
+                     f"{max(float(r[A.MAX_FIBRE_BEND]) for r in own):.2f}",
                      int(np.count_nonzero(series.buckled[:, k])),
                      f"{series.volume_error[:, k].mean():.2f} / "
                      f"{series.volume_error[:, k].max():.2f}"))

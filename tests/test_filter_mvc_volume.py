@@ -118,6 +118,7 @@ def test_fibres_are_polylines_through_their_particles_in_order():
     rng = np.random.default_rng(0)
     solved = moved(model, lambda p: p + rng.normal(scale=0.5, size=p.shape))
     f = deform(solved, surfaces, model)
+    rest_blocks = dict(V.blocks(model))
     for name, block in V.blocks(solved):
         fibres = dict(V.blocks(f.GetOutputDataObject(1)))[name]
         offsets, connectivity = V.lines_of(fibres)
@@ -138,6 +139,11 @@ def test_fibres_are_polylines_through_their_particles_in_order():
             assert V.cell_array(fibres, A.FIBRE_ARC_CHORD)[cell] == pytest.approx(length / chord,
                                                                                   rel=1e-12)
             assert V.cell_array(fibres, A.FIBRE_ARC_CHORD)[cell] > 1.0   # jittered: bent
+            at_rest = V.points_of(rest_blocks[name])[members[np.argsort(fibre_index[members])]]
+            rest_arc_chord = (np.linalg.norm(np.diff(at_rest, axis=0), axis=1).sum()
+                              / np.linalg.norm(at_rest[-1] - at_rest[0]))
+            assert V.cell_array(fibres, A.FIBRE_BEND)[cell] == pytest.approx(
+                length / chord / rest_arc_chord, rel=1e-12)
         grid = V.cell_array(fibres, A.FIBRE_GRID, required=False)
         assert (grid is not None) == (name == "vastus")
 
@@ -152,6 +158,7 @@ def test_uniform_stretch_gives_its_strain_and_volume():
         np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_END_STRAIN), stretch - 1.0,
                                    rtol=0, atol=1e-12)
         np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_ARC_CHORD), 1.0, atol=1e-12)
+        np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_BEND), 1.0, atol=1e-12)
     table = V.table_columns(probe(f.GetOutputDataObject(0), surfaces).GetOutputDataObject(1))
     np.testing.assert_allclose(table[A.VOLUME] / table[A.REST_VOLUME], stretch, rtol=1e-9)
     np.testing.assert_allclose(table[A.VOLUME_ERROR_PCT], 100.0 * (stretch - 1.0), rtol=1e-9)
