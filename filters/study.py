@@ -43,7 +43,8 @@ ARC_CHORD_LIMIT = 1.1
 as buckled (issue 31's bound): a straight or gently curved fibre stays below, a fibre folding
 instead of shortening goes above (1.3-1.75 at the elbow's 130 degrees without
 ``FibreShortening``). Fibres curved at rest can start above it (the demo thigh's adductor
-brevis, 1.24): the report gives each muscle's rest value beside it."""
+brevis, 1.24): the report gives each muscle's rest value and its largest bend
+(``max_fibre_bend``, arc/chord over the fibre's at rest) beside it."""
 PAPER_VOLUME_ERROR_PCT = 2.71
 """The paper's mean volume error over its motion (%)."""
 ACCEPTED_VOLUME_ERROR_PCT = 6.0
