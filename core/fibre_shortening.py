@@ -40,6 +40,7 @@ import dataclasses
 
 import numpy as np
 
+from .cage import polyline_lengths
 from .model import MSSModel
 from .rigid_fit import rigid_fit
 
@@ -122,6 +123,30 @@ def muscle_shortening(model: MSSModel, first, last) -> np.ndarray:
         return np.where(chords[0] > 0.0, chords[1] / chords[0], 1.0)
 
 
+def volume_kept_stretch(axis, s: float) -> np.ndarray:
+    """(3, 3): the linear map that stretches by ``s`` along the unit vector ``axis`` (3,) and by
+    1 / sqrt(s) across it, keeping volumes (``s`` < 1 shortens and widens)."""
+    along = np.outer(axis, axis)
+    return s * along + (np.eye(3) - along) / np.sqrt(s)
+
+
+def kept_shape_lengths(rest_positions, order, offsets, s: float) -> np.ndarray:
+    """(F,) mm: the lengths of one muscle's fibres (``order``, ``offsets`` as from
+    :func:`~muscle_mss.core.cage.fibre_polylines`) in its rest shape ``rest_positions`` (p, 3)
+    mm stretched by :func:`volume_kept_stretch` with ``s`` along its origin-insertion line (the
+    centroids of the fibres' first and last particles): the lengths the fibres would have if the
+    muscle kept its rest shape and volume while its ends moved ``s`` times as far apart. A
+    curved fibre of a muscle that thickens as it shortens (or thins as it lengthens) changes
+    less than ``s``; a straight fibre along that line changes by ``s``."""
+    rest = np.asarray(rest_positions, dtype=np.float64)
+    firsts, lasts = rest[order[offsets[:-1]]], rest[order[offsets[1:] - 1]]
+    axis = lasts.mean(axis=0) - firsts.mean(axis=0)
+    size = np.linalg.norm(axis)
+    if size == 0.0:
+        return polyline_lengths(rest, order, offsets)
+    return polyline_lengths(rest @ volume_kept_stretch(axis / size, s).T, order, offsets)
+
+
 def shortened_target(model: MSSModel) -> np.ndarray | None:
     """(n, 3) mm: the connective tissue's target with the shortened muscles' rest shapes
     (module docstring), or None where no muscle's ends come closer than at rest."""
@@ -138,8 +163,7 @@ def shortened_target(model: MSSModel) -> np.ndarray | None:
         s = float(factor[m])
         a, b = first[muscle == m], last[muscle == m]
         axis = rest[b].mean(axis=0) - rest[a].mean(axis=0)
-        axis /= np.linalg.norm(axis)
-        stretch = s * np.outer(axis, axis) + (np.eye(3) - np.outer(axis, axis)) / np.sqrt(s)
+        stretch = volume_kept_stretch(axis / np.linalg.norm(axis), s)
         tips = np.concatenate([a, b])
         rotation, translation, _, _ = rigid_fit(rest[tips] @ stretch.T, target[tips])
         lo, hi = offsets[m], offsets[m + 1]

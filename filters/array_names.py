@@ -33,6 +33,10 @@ FIBRE_STRAIN = "fibre_strain"        # float64, length / rest length - 1
 FIBRE_END_STRAIN = "fibre_end_to_end_strain"  # float64, chord / rest chord - 1 (the chord: the
 #                                               distance from the fibre's first point to its last)
 FIBRE_ARC_CHORD = "fibre_arc_chord"  # float64, length / chord: 1 straight, more when it bends
+FIBRE_KEPT_SHAPE_STRAIN = "fibre_kept_shape_strain"  # float64, the FIBRE_STRAIN the fibre would
+#   have if its muscle kept its rest shape and volume, stretched along its origin-insertion line
+#   by its mean chord / rest chord (core.fibre_shortening.kept_shape_lengths): a reference for
+#   FIBRE_STRAIN, by which curved fibres of a thickening muscle shorten less than its ends
 FIBRE_BEND = "fibre_bend"            # float64, FIBRE_ARC_CHORD over the fibre's at rest: 1 as
 #                                      curved as at rest, more where it folds or wraps a bone
 
@@ -98,6 +102,7 @@ MEAN_FIBRE_STRAIN = "mean_fibre_strain"
 MAX_FIBRE_STRAIN = "max_fibre_strain"
 MEAN_END_TO_END_STRAIN = "mean_end_to_end_strain"  # mean FIBRE_END_STRAIN of the muscle
 MAX_ARC_CHORD = "max_arc_chord"      # largest FIBRE_ARC_CHORD of the muscle
+MEAN_KEPT_SHAPE_STRAIN = "mean_kept_shape_strain"  # mean FIBRE_KEPT_SHAPE_STRAIN of the muscle
 MAX_FIBRE_BEND = "max_fibre_bend"    # largest FIBRE_BEND of the muscle
 SPHERE_OVERLAP_MM = "sphere_overlap_mm"  # mm, deepest overlap of the muscle's spheres
 ITERATIONS = "iterations"            # int, iterations of the time point's solve

@@ -131,7 +131,8 @@ class ProgressBar:
 
 def summary_table(rows) -> str:
     """Per muscle over the whole motion: mean and max volume error, max fibre strain, how its
-    fibres follow its end-to-end length (:func:`~.study.follow_slope`), their largest arc /
+    fibres follow its end-to-end length (:func:`~.study.follow_slope`) and how its rest shape
+    stretched with its volume kept would (``kept``), their largest arc /
     chord (above 1 a fibre bends or folds) and bend (that over its rest value: above 1 a fibre
     bends more than at rest), max sphere overlap, the deepest surface vertex newly
     in a bone as written (after the MVC Surface Deformer's push out) and before the push, the
@@ -144,7 +145,7 @@ def summary_table(rows) -> str:
     for r in rows:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
-              f"{'follows':>7s} {'arc/chord':>9s} {'bend':>5s} {'overlap mm':>10s} "
+              f"{'follows':>7s} {'kept':>5s} {'arc/chord':>9s} {'bend':>5s} {'overlap mm':>10s} "
               f"{'in bone mm':>10s} "
               f"{'pushed mm':>10s} {'drift mm':>8s} "
               f"{'tissue %':>8s} {'iters':>6s} {'s/time':>7s}")
@@ -155,7 +156,9 @@ def summary_table(rows) -> str:
         means.append(sum(err) / len(err))
         lines.append(f"{name:28s} {means[-1]:14.2f} {max(err):7.2f} "
                      f"{max(float(r[A.MAX_FIBRE_STRAIN]) for r in rs):10.3f} "
-                     f"{_or_dash(follow_slope(rs), 7, 2)} {_deepest(rs, A.MAX_ARC_CHORD, 9, 2)} "
+                     f"{_or_dash(follow_slope(rs), 7, 2)} "
+                     f"{_or_dash(follow_slope(rs, A.MEAN_KEPT_SHAPE_STRAIN), 5, 2)} "
+                     f"{_deepest(rs, A.MAX_ARC_CHORD, 9, 2)} "
                      f"{_deepest(rs, A.MAX_FIBRE_BEND, 5, 2)} "
                      f"{max(float(r[A.SPHERE_OVERLAP_MM]) for r in rs):10.3f} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM)} "

@@ -172,6 +172,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
         fibre_stats[name] = {
             A.MEAN_FIBRE_STRAIN: float(strain.mean()), A.MAX_FIBRE_STRAIN: float(strain.max()),
             A.MEAN_END_TO_END_STRAIN: float(np.nanmean(V.cell_array(block, A.FIBRE_END_STRAIN))),
+            A.MEAN_KEPT_SHAPE_STRAIN: float(V.cell_array(block, A.FIBRE_KEPT_SHAPE_STRAIN).mean()),
             A.MAX_ARC_CHORD: float(np.nanmax(V.cell_array(block, A.FIBRE_ARC_CHORD))),
             A.MAX_FIBRE_BEND: float(np.nanmax(V.cell_array(block, A.FIBRE_BEND)))}
     solve = {A.ITERATIONS: len(convergence[A.ITERATION]), A.CONVERGED: converged,

@@ -34,6 +34,7 @@ import numpy as np
 
 from muscle_mss.core import mvc
 from muscle_mss.core.bone_distance import BoneFieldSet, push_out_of_bones
+from muscle_mss.core.fibre_shortening import kept_shape_lengths
 from muscle_mss.core.exact_bone_distance import exact_signed_distances, push_out_exactly
 from muscle_mss.core.bone_field_sampling import DEFAULT_SPACING, bone_distance_field
 from muscle_mss.core.cage import (Cage, fibre_polylines, muscle_cage, polyline_chords,
@@ -479,6 +480,10 @@ def _muscle_outputs(name, binding: MuscleBinding, current, deformed, report):
         V.set_cell_array(polylines, A.FIBRE_ARC_CHORD, lengths / chords)
         V.set_cell_array(polylines, A.FIBRE_BEND, lengths / chords * binding.rest_chords
                          / binding.rest_lengths)
+    spanned = binding.rest_chords > 0.0
+    ends = float((chords[spanned] / binding.rest_chords[spanned]).mean()) if spanned.any() else 1.0
+    kept = kept_shape_lengths(binding.rest_positions, binding.order, binding.offsets, ends)
+    V.set_cell_array(polylines, A.FIBRE_KEPT_SHAPE_STRAIN, kept / binding.rest_lengths - 1.0)
     if binding.fibre_grid is not None:
         polylines.GetCellData().AddArray(binding.fibre_grid)
     return surface, polylines

@@ -34,29 +34,34 @@ from . import output_folder as folder
 
 SUMMARY_COLUMNS = (A.TIME, A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
                    A.MEAN_FIBRE_STRAIN, A.MAX_FIBRE_STRAIN, A.MEAN_END_TO_END_STRAIN,
+                   A.MEAN_KEPT_SHAPE_STRAIN,
                    A.MAX_ARC_CHORD, A.MAX_FIBRE_BEND, A.SPHERE_OVERLAP_MM,
                    A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
                    A.NEW_IN_BONE_DEPTH_AFTER_MM, A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM,
                    *A.FREE_IN_BONE_FIELDS, A.TISSUE_SHARE_PCT,
                    A.ITERATIONS, A.CONVERGED, A.SECONDS)
-"""``mean_end_to_end_strain``: the mean over the muscle's fibres of their end-to-end distance
-over that at rest, minus 1 (how much the muscle's origin-insertion length changed, to set
-beside ``mean_fibre_strain``, how much its fibres did); ``max_arc_chord``: the largest ratio of
-a fibre's length to its end-to-end distance (1 straight; a fibre that folds instead of
-shortening goes well above); ``max_fibre_bend``: the largest ratio of a fibre's arc / chord to
-its arc / chord at rest (1: as curved as at rest, so a fibre curved at rest is not counted as
-folded; above: it folds, or wraps a bone the motion brings against it); ``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres of
-other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
+"""``mean_end_to_end_strain``: the mean over the muscle's fibres of their end-to-end distance over
+that at rest, minus 1 (how much the muscle's origin-insertion length changed, to set beside
+``mean_fibre_strain``, how much its fibres did); ``mean_kept_shape_strain``: the mean fibre
+strain the muscle would have if it kept its rest shape and volume, stretched along its
+origin-insertion line as far as its ends moved (a reference for ``mean_fibre_strain``: the
+curved fibres of a muscle that thickens as it shortens change less than its ends);
+``max_arc_chord``: the largest ratio of a fibre's length to its end-to-end distance (1 straight;
+a fibre that folds instead of shortening goes well above); ``max_fibre_bend``: the largest ratio
+of a fibre's arc / chord to its arc / chord at rest (1: as curved as at rest, so a fibre curved
+at rest is not counted as folded; above: it folds, or wraps a bone the motion brings against
+it); ``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres
+of other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
 (``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed
 surface vertices inside a bone they were outside at rest, before and after the MVC Surface
 Deformer pushes them out; ``cage_drift_*``: how many deformed surface vertices drifted off their
 cage by more than :data:`~muscle_mss.core.cage_drift.CAGE_DRIFT_LIMIT` (the mean value
 coordinates carried them far from the particles around them) and the largest drift, mm;
-``free_particle*``: solved particles that are not tendon attachments
-with their centre inside a bone, and the deepest (by the bones' signed distance fields), all of
-them and those not inside a bone at rest (``*new_in_bone*``), as the MSS Collision Solver
-reports them; ``tissue_share_pct``: the connective tissue's force over the muscle's springs'
-force (%, 0 without tissue: ``ConnectiveTissue``)."""
+``free_particle*``: solved particles that are not tendon attachments with their centre inside a
+bone, and the deepest (by the bones' signed distance fields), all of them and those not inside a
+bone at rest (``*new_in_bone*``), as the MSS Collision Solver reports them;
+``tissue_share_pct``: the connective tissue's force over the muscle's springs' force (%, 0
+without tissue: ``ConnectiveTissue``)."""
 SURFACES, FIBRES, PARTICLES = "surfaces", "fibres", "particles"
 SERIES = (SURFACES, FIBRES, PARTICLES)
 """The series a run writes (``--write`` picks some), each as ``<name>.pvd``."""

@@ -160,14 +160,16 @@ FOLLOW_SPAN = 0.05
 :func:`follow_slope` to give a slope."""
 
 
-def follow_slope(rows) -> float:
+def follow_slope(rows, fibres: str = A.MEAN_FIBRE_STRAIN) -> float:
     """How a muscle's fibres follow its end-to-end length over the time points ``rows``: the
     least-squares slope of ``mean_fibre_strain`` against ``mean_end_to_end_strain`` (1: the
     fibres lengthen and shorten with the muscle; near 0: they keep their length, and a
     shortening muscle folds). NaN when the end-to-end strain spreads less than
-    :data:`FOLLOW_SPAN` (one time point, a muscle the motion does not stretch)."""
-    pairs = [(float(r[A.MEAN_END_TO_END_STRAIN]), float(r[A.MEAN_FIBRE_STRAIN])) for r in rows
-             if r.get(A.MEAN_END_TO_END_STRAIN, "") != ""]
+    :data:`FOLLOW_SPAN` (one time point, a muscle the motion does not stretch). With
+    ``fibres`` ``mean_kept_shape_strain``: the slope the muscle's rest shape would give,
+    stretched with its volume kept (below 1 where its fibres are curved at rest)."""
+    pairs = [(float(r[A.MEAN_END_TO_END_STRAIN]), float(r[fibres])) for r in rows
+             if r.get(A.MEAN_END_TO_END_STRAIN, "") != "" and r.get(fibres, "") != ""]
     ends = [e for e, _ in pairs]
     if not pairs or max(ends) - min(ends) < FOLLOW_SPAN:
         return math.nan

@@ -267,7 +267,8 @@ def muscle_rows(study: Study) -> list:
     """The report's per-muscle table over the motion (header first)."""
     series = study.motion
     rows = [("muscle", "fibre strain % (mean: least / largest over time)",
-             "path change % (least / largest)", "fibres follow the path (slope)",
+             "path change % (least / largest)",
+             "fibres follow the path (slope; the rest shape stretched, volume kept)",
              "largest arc/chord (at rest), largest bend (arc/chord over its rest value)",
              f"time points with a fibre above {ARC_CHORD_LIMIT:g}",
              "volume error % (mean / max)")]
@@ -276,7 +277,9 @@ def muscle_rows(study: Study) -> list:
         path = 100.0 * series.path_strain[:, k]
         own = [r for r in series.rows if r[A.MUSCLE] == name]
         rows.append((name, f"{mean.min():.1f} / {mean.max():.1f}",
-                     f"{path.min():.1f} / {path.max():.1f}", follow_slope(own),
+                     f"{path.min():.1f} / {path.max():.1f}",
+                     f"{_cell(follow_slope(own))} "
+                     f"({_cell(follow_slope(own, A.MEAN_KEPT_SHAPE_STRAIN))})",
                      f"{series.arc_chord[:, k].max():.2f} ({series.rest_arc_chord[k]:.2f}), "
                      f"{max(float(r[A.MAX_FIBRE_BEND]) for r in own):.2f}",
                      int(np.count_nonzero(series.buckled[:, k])),

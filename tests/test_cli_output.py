@@ -146,8 +146,9 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
            "seconds": "0.7", "time": "0.5"}
     table = summary_table([row])
     header, _, line = table.splitlines()[:3]
-    columns = dict(zip(["muscle", "mean", "max", "strain", "follows", "arc/chord", "bend",
-                        "overlap", "in bone", "pushed", "drift", "tissue", "iters", "seconds"],
+    columns = dict(zip(["muscle", "mean", "max", "strain", "follows", "kept", "arc/chord",
+                        "bend", "overlap", "in bone", "pushed", "drift", "tissue", "iters",
+                        "seconds"],
                        line.split()))
     assert "in bone mm" in header and "pushed mm" in header
     assert header.index("in bone mm") < header.index("pushed mm") < header.index("tissue %")
@@ -159,8 +160,9 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
     assert warning.startswith("warning: vastus: surface vertices left their cage by more than "
                               "10 mm at 1 of 2 time points") and "13.9 mm, at t = 0.5 s" in warning
     no_bones = dict(row, new_in_bone_depth_mm="", new_in_bone_depth_after_push_mm="")
-    assert summary_table([no_bones]).splitlines()[2].split()[8:10] == ["-", "-"]
-    assert columns["follows"] == columns["arc/chord"] == columns["bend"] == "-"  # not in these
+    assert summary_table([no_bones]).splitlines()[2].split()[9:11] == ["-", "-"]
+    assert columns["follows"] == columns["kept"] == columns["arc/chord"] == columns["bend"] \
+        == "-"                                                          # not in these rows
 
 
 def test_the_table_says_how_the_fibres_follow_their_muscles_length():
@@ -172,12 +174,13 @@ def test_the_table_says_how_the_fibres_follow_their_muscles_length():
             "tissue_share_pct": "0", "iterations": "500", "seconds": "0.5"}
     # shortens 20 % while its fibres keep their length and fold: slope 0
     folding = [dict(base, mean_end_to_end_strain=str(-0.1 * k), mean_fibre_strain="0.01",
-                    max_arc_chord=str(1.1 + 0.2 * k), max_fibre_bend=str(1.0 + 0.2 * k))
-               for k in range(3)]
+                    max_arc_chord=str(1.1 + 0.2 * k), max_fibre_bend=str(1.0 + 0.2 * k),
+                    mean_kept_shape_strain=str(-0.08 * k)) for k in range(3)]
     following = [dict(r, mean_fibre_strain=str(0.9 * float(r["mean_end_to_end_strain"])))
                  for r in folding]
     assert follow_slope(folding) == pytest.approx(0.0)
     assert follow_slope(following) == pytest.approx(0.9)
     assert math.isnan(follow_slope(folding[:1]))        # one time point: no slope
     line = summary_table(folding).splitlines()[2].split()
-    assert line[4:7] == ["0.00", "1.50", "1.40"]
+    assert line[4:8] == ["0.00", "0.80", "1.50", "1.40"]
+    assert follow_slope(folding, "mean_kept_shape_strain") == pytest.approx(0.8)

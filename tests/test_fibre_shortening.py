@@ -6,9 +6,11 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from muscle_mss.core import solver
-from muscle_mss.core.fibre_shortening import (TARGET_BLEND, shortened_rest_lengths,
-                                              shortened_springs, shortened_target,
-                                              shortening_factors)
+from muscle_mss.core.cage import fibre_polylines, polyline_lengths
+from muscle_mss.core.fibre_shortening import (TARGET_BLEND, kept_shape_lengths,
+                                              shortened_rest_lengths, shortened_springs,
+                                              shortened_target, shortening_factors,
+                                              volume_kept_stretch)
 from muscle_mss.core.settings import METHOD_QUASI_STATIC, SPRING_ENERGIES, SolverSettings
 
 from test_connective_tissue import slab
@@ -188,3 +190,33 @@ def test_the_command_line_sets_the_property_only_when_asked():
     assert "FibreShortening" not in settings_from(parser.parse_args([]))
     assert settings_from(parser.parse_args(["--fibre-shortening"]))["FibreShortening"] is True
     assert settings_from(parser.parse_args(["--no-fibre-shortening"]))["FibreShortening"] is False
+
+
+def test_the_kept_shape_reference_scales_straight_fibres_by_s_and_curved_ones_less():
+    """A slab's straight fibres along its origin-insertion line change by s; the fibres of a
+    spindle (converging on its two ends, bowed around its belly) change less than s either
+    way, since the belly thickens as it shortens and thins as it lengthens (volume kept)."""
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    stretch = volume_kept_stretch(axis, 0.7)
+    assert np.linalg.det(stretch) == pytest.approx(1.0, rel=1e-12)
+    np.testing.assert_allclose(stretch @ axis, 0.7 * axis, rtol=1e-12)
+    model = slab(PER_FIBRE)
+    order, offsets, _ = fibre_polylines(model.fibre_id, model.fibre_index)
+    rest = model.rest_positions
+    lengths = polyline_lengths(rest, order, offsets)
+    for s in (0.7, 1.0, 1.2):
+        np.testing.assert_allclose(kept_shape_lengths(rest, order, offsets, s), s * lengths,
+                                   rtol=1e-12)
+    # a spindle: 12 fibres from (0, 0, 0) to (0, 0, 40), bowed 6 mm out in 12 directions
+    t = np.linspace(0.0, 1.0, PER_FIBRE)
+    angles = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    spindle = np.concatenate([np.column_stack([6.0 * np.sin(np.pi * t) * np.cos(a),
+                                               6.0 * np.sin(np.pi * t) * np.sin(a), 40.0 * t])
+                              for a in angles])
+    order, offsets, _ = fibre_polylines(np.repeat(np.arange(12), PER_FIBRE),
+                                        np.tile(np.arange(PER_FIBRE), 12))
+    rest_lengths = polyline_lengths(spindle, order, offsets)
+    assert (rest_lengths / 40.0 > 1.05).all()                        # curved at rest
+    for s in (0.7, 1.2):
+        ratio = kept_shape_lengths(spindle, order, offsets, s) / rest_lengths
+        assert (np.minimum(s, 1.0) < ratio).all() and (ratio < np.maximum(s, 1.0)).all()

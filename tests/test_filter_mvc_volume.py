@@ -159,6 +159,9 @@ def test_uniform_stretch_gives_its_strain_and_volume():
                                    rtol=0, atol=1e-12)
         np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_ARC_CHORD), 1.0, atol=1e-12)
         np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_BEND), 1.0, atol=1e-12)
+        # straight fibres along the muscle's origin-insertion line: the kept shape's strain too
+        np.testing.assert_allclose(V.cell_array(fibres, A.FIBRE_KEPT_SHAPE_STRAIN),
+                                   stretch - 1.0, rtol=0, atol=1e-12)
     table = V.table_columns(probe(f.GetOutputDataObject(0), surfaces).GetOutputDataObject(1))
     np.testing.assert_allclose(table[A.VOLUME] / table[A.REST_VOLUME], stretch, rtol=1e-9)
     np.testing.assert_allclose(table[A.VOLUME_ERROR_PCT], 100.0 * (stretch - 1.0), rtol=1e-9)

@@ -93,6 +93,7 @@ def test_fibres_and_paths_keep_their_rest_length_when_the_bones_do_not_move(
     np.testing.assert_allclose(series.arc_chord, series.rest_arc_chord[None].repeat(3, 0),
                                atol=1e-12)     # the rest tortuosity, from the rest positions
     assert max(abs(r[A.MAX_FIBRE_BEND] - 1.0) for r in series.rows) < 1e-12   # bent as at rest
+    assert max(abs(r[A.MEAN_KEPT_SHAPE_STRAIN]) for r in series.rows) < 1e-12
 
 
 def test_a_zigzag_fibre_is_flagged_and_a_straight_one_is_not():
