@@ -249,15 +249,17 @@ def compiling_meanwhile(settings: dict):
     return compiling_beside(stderr_notice, scope_for(settings))
 
 
-def prepared_pipeline(scene_folder: str, settings: dict, compiling: bool, index: int = 0):
-    """The pipeline of ``scene_folder`` with ``settings``; while its kernels compile
-    (``compiling``, as :func:`compiling_meanwhile` says), time point ``index`` prepared up to
-    its solve (``motion_run.prepare_time_point``)."""
+def prepared_pipeline(scene_folder: str, settings: dict, compiling: bool, time=None):
+    """``(pipeline, index)``: the pipeline of ``scene_folder`` with ``settings`` and the index
+    of its time point nearest ``time`` (None: the first), which, while the kernels compile
+    (``compiling``, as :func:`compiling_meanwhile` says), is prepared up to its solve
+    (``motion_run.prepare_time_point``)."""
     from . import motion_run
     pipeline = motion_run.build_pipeline(scene_folder, settings)
+    index = 0 if time is None else time_point_index(pipeline.times, time)
     if compiling:
         motion_run.prepare_time_point(pipeline, index)
-    return pipeline
+    return pipeline, index
 
 
 def compile_kernels(settings: dict | None = None) -> None:
@@ -292,7 +294,7 @@ def cmd_demo(args) -> int:
             scene = write_demo_scene(scene_folder, args.size, args.region)
             print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> "
                   f"{scene_folder}", flush=True)
-            pipeline = prepared_pipeline(scene_folder, settings, compiling)
+            pipeline, _ = prepared_pipeline(scene_folder, settings, compiling)
         run_and_report(scene_folder, args.out, settings, scene, writing, pipeline, start)
     return 0
 
@@ -306,7 +308,7 @@ def cmd_run(args) -> int:
         if args.time is None:
             start = wallclock.perf_counter()
             with compiling_meanwhile(settings) as compiling:
-                pipeline = prepared_pipeline(args.scene, settings, compiling)
+                pipeline, _ = prepared_pipeline(args.scene, settings, compiling)
             run_and_report(args.scene, args.out, settings, scene, writing, pipeline, start)
         else:
             run_time_point(args, settings, writing)
@@ -317,10 +319,7 @@ def run_time_point(args, settings, writing) -> None:
     """``muscle-mss run --time T``: solve and write the time point nearest T."""
     from . import motion_run, run_output
     with compiling_meanwhile(settings) as compiling:
-        pipeline = motion_run.build_pipeline(args.scene, settings)
-        index = time_point_index(pipeline.times, args.time)
-        if compiling:
-            motion_run.prepare_time_point(pipeline, index)
+        pipeline, index = prepared_pipeline(args.scene, settings, compiling, args.time)
     result = motion_run.solve_time_point(pipeline, index)
     run_output.write_time_point(result, args.out, writing.series, writing.compressor)
     run_output.write_summary(args.out, result.rows)
