@@ -14,7 +14,7 @@ from . import array_names as A
 from . import output_folder as folder
 from .pictures import MUSCLE_COLOURS
 from .run_output import SUMMARY_COLUMNS, SUMMARY_FILE, write_csv
-from .study import (ACCEPTED_VOLUME_ERROR_PCT, ARC_CHORD_LIMIT, LAYOUT_QUASI_STATIC_CAP,
+from .study import (ACCEPTED_VOLUME_ERROR_PCT, BEND_LIMIT, LAYOUT_QUASI_STATIC_CAP,
                     PAPER_VOLUME_ERROR_PCT, PHASES, SLOPE_WINDOW, Study,
                     follow_slope)
 
@@ -164,9 +164,10 @@ def _lines_over_time(study: Study, out: str, name: str, values, ylabel: str, tit
 
 def tortuosity_figure(study: Study, out: str) -> str:
     return _lines_over_time(
-        study, out, TORTUOSITY, study.motion.arc_chord, "largest fibre arc / chord",
-        "buckling: the most curved fibre of each muscle",
-        [(ARC_CHORD_LIMIT, f"buckled above {ARC_CHORD_LIMIT:g}", "--")])
+        study, out, TORTUOSITY, study.motion.bend,
+        "largest fibre bend (arc / chord over that at rest)",
+        "buckling: the fibre of each muscle most bent beyond its rest shape",
+        [(BEND_LIMIT, f"buckled above {BEND_LIMIT:g}", "--")])
 
 
 def volume_figure(study: Study, out: str) -> str:
@@ -231,10 +232,10 @@ def write_tables(study: Study, out: str) -> None:
     write_csv(os.path.join(out, f"{FIBRE_LENGTH}.csv"), (
         A.TIME, A.MUSCLE, A.MEAN_FIBRE_STRAIN, "min_fibre_strain", A.MAX_FIBRE_STRAIN,
         "path_length_mm", "path_strain", A.MAX_ARC_CHORD, "rest_max_arc_chord",
-        "buckled_fibres"), (
+        A.MAX_FIBRE_BEND, "buckled_fibres"), (
         (series.times[t], m, *series.fibre_strain[t, k], series.path_length[t, k],
          series.path_strain[t, k], series.arc_chord[t, k], series.rest_arc_chord[k],
-         int(series.buckled[t, k]))
+         series.bend[t, k], int(series.buckled[t, k]))
         for t, k, m in cells))
     write_csv(os.path.join(out, f"{VOLUME}.csv"), (A.TIME, A.MUSCLE, A.VOLUME_ERROR_PCT), (
         (series.times[t], m, series.volume_error[t, k]) for t, k, m in cells))
@@ -270,7 +271,7 @@ def muscle_rows(study: Study) -> list:
              "path change % (least / largest)",
              "fibres follow the path (slope; the rest shape stretched, volume kept)",
              "largest arc/chord (at rest), largest bend (arc/chord over its rest value)",
-             f"time points with a fibre above {ARC_CHORD_LIMIT:g}",
+             f"time points with a fibre bent above {BEND_LIMIT:g}",
              "volume error % (mean / max)")]
     for k, name in enumerate(series.muscles):
         mean = 100.0 * series.fibre_strain[:, k, 0]
@@ -281,7 +282,7 @@ def muscle_rows(study: Study) -> list:
                      f"{_cell(follow_slope(own))} "
                      f"({_cell(follow_slope(own, A.MEAN_KEPT_SHAPE_STRAIN))})",
                      f"{series.arc_chord[:, k].max():.2f} ({series.rest_arc_chord[k]:.2f}), "
-                     f"{max(float(r[A.MAX_FIBRE_BEND]) for r in own):.2f}",
+                     f"{series.bend[:, k].max():.2f}",
                      int(np.count_nonzero(series.buckled[:, k])),
                      f"{series.volume_error[:, k].mean():.2f} / "
                      f"{series.volume_error[:, k].max():.2f}"))
@@ -295,18 +296,20 @@ def buckling_text(study: Study) -> str:
     for k, name in enumerate(series.muscles):
         at = np.flatnonzero(series.buckled[:, k])
         if len(at):
-            worst = int(np.argmax(series.arc_chord[:, k]))
+            worst = int(np.argmax(series.bend[:, k]))
             lines.append(f"<li><b>{html.escape(_label(name))}</b>: {len(at)} of "
                          f"{len(series.times)} time points (t = "
                          f"{', '.join(f'{series.times[t]:g}' for t in at[:8])}"
                          f"{' …' if len(at) > 8 else ''} s), at most "
-                         f"{int(series.buckled[:, k].max())} fibres; arc/chord up to "
-                         f"{series.arc_chord[worst, k]:.2f} at t = {series.times[worst]:g} s "
-                         f"({series.rest_arc_chord[k]:.2f} at rest)</li>")
+                         f"{int(series.buckled[:, k].max())} fibres; bend up to "
+                         f"{series.bend[worst, k]:.2f} at t = {series.times[worst]:g} s "
+                         f"(arc/chord {series.arc_chord[worst, k]:.2f}, "
+                         f"{series.rest_arc_chord[k]:.2f} at rest)</li>")
     if not lines:
-        return (f"<p>No fibre of any muscle exceeds arc/chord {ARC_CHORD_LIMIT:g} at any time "
-                "point: no buckling.</p>")
-    return "<p>Buckled (a fibre above arc/chord " + f"{ARC_CHORD_LIMIT:g}):</p><ul>" + \
+        return (f"<p>No fibre of any muscle bends beyond {BEND_LIMIT:g} times its arc/chord "
+                "at rest at any time point: no buckling.</p>")
+    return ("<p>Buckled (a fibre whose arc/chord exceeds its own at rest "
+            f"{BEND_LIMIT:g} times):</p><ul>") + \
         "".join(lines) + "</ul>"
 
 
@@ -352,10 +355,13 @@ def report_html(study: Study, out: str) -> str:
         "between the centroids of the fibres' end particles on the bones, dashed). Fibres "
         "that follow the joint motion track the dashed line; <i>slope</i> is the fibres' mean "
         "strain regressed on their ends' (1: they follow; near 0: they keep their length, and "
-        "a shortening muscle folds).</p>",
+        "a shortening muscle folds); in brackets the slope its rest shape would give, stretched "
+        "with its volume kept (curved fibres of a muscle that thickens as it shortens change "
+        "less than its ends).</p>",
         _image(out, FIBRE_LENGTH, "fibre length change and path length change per muscle"),
         _table(muscle_rows(study)),
-        _image(out, TORTUOSITY, "largest fibre arc/chord per muscle over time"),
+        _image(out, TORTUOSITY, "largest fibre bend (arc/chord over that at rest) per muscle "
+               "over time"),
         buckling_text(study),
         "<h2>3. Volume</h2>",
         f"<p>Mean volume error over all muscles and time points {volume.mean():.2f} % "

@@ -92,14 +92,14 @@ def test_fibres_and_paths_keep_their_rest_length_when_the_bones_do_not_move(
     assert (series.buckled == 0).all() and series.arc_chord.max() < 1.1
     np.testing.assert_allclose(series.arc_chord, series.rest_arc_chord[None].repeat(3, 0),
                                atol=1e-12)     # the rest tortuosity, from the rest positions
-    assert max(abs(r[A.MAX_FIBRE_BEND] - 1.0) for r in series.rows) < 1e-12   # bent as at rest
+    assert np.abs(series.bend - 1.0).max() < 1e-12                   # bent as at rest
     assert max(abs(r[A.MEAN_KEPT_SHAPE_STRAIN]) for r in series.rows) < 1e-12
 
 
 def test_a_zigzag_fibre_is_flagged_and_a_straight_one_is_not():
     from muscle_mss.core.cage import polyline_chords, polyline_lengths
     from muscle_mss.filters import vtk_arrays as V
-    from muscle_mss.filters.study import ARC_CHORD_LIMIT, fibre_statistics
+    from muscle_mss.filters.study import BEND_LIMIT, fibre_statistics
     t = np.linspace(0.0, 100.0, 11)
     straight = np.column_stack([t, np.zeros(11), np.zeros(11)])
     zigzag = np.column_stack([t, 8.0 * (np.arange(11) % 2), np.zeros(11) + 30.0])
@@ -108,15 +108,17 @@ def test_a_zigzag_fibre_is_flagged_and_a_straight_one_is_not():
     order = np.arange(22)
     lengths = polyline_lengths(points, order, offsets)
     arc_chord = lengths / polyline_chords(points, order, offsets)
-    assert arc_chord[0] == pytest.approx(1.0) and arc_chord[1] > ARC_CHORD_LIMIT
+    assert arc_chord[0] == pytest.approx(1.0) and arc_chord[1] > BEND_LIMIT
     block = V.make_polydata(points, line_offsets=offsets, line_connectivity=order)
     V.set_cell_array(block, A.FIBRE_STRAIN, lengths / 100.0 - 1.0)
     V.set_cell_array(block, A.FIBRE_ARC_CHORD, arc_chord)
-    mean, least, largest, worst, buckled = fibre_statistics(block)
-    assert buckled == 1 and worst == pytest.approx(arc_chord[1])
+    V.set_cell_array(block, A.FIBRE_BEND, arc_chord)                   # both straight at rest
+    mean, least, largest, worst, bent, buckled = fibre_statistics(block)
+    assert buckled == 1 and worst == bent == pytest.approx(arc_chord[1])
     assert least == pytest.approx(0.0) and largest > 0.1
-    V.set_cell_array(block, A.FIBRE_ARC_CHORD, np.ones(2))
-    assert fibre_statistics(block)[4] == 0
+    # the same zigzag at rest: as bent as it was, not buckled
+    V.set_cell_array(block, A.FIBRE_BEND, np.ones(2))
+    assert fibre_statistics(block)[5] == 0 and fibre_statistics(block)[3] > BEND_LIMIT
 
 
 def test_the_later_phase_slope_is_the_decay_rate():
