@@ -67,10 +67,11 @@ def fibre_order(model: MSSModel):
     return order, starts, ends
 
 
-def shortening_factors(model: MSSModel) -> np.ndarray:
+def shortening_factors(model: MSSModel, fibres=None) -> np.ndarray:
     """(n,) per particle: its fibre's factor s = min(1, end-to-end distance posed / at rest)
-    (``model.positions`` posed, ``model.rest_positions`` at rest, mm)."""
-    order, starts, ends = fibre_order(model)
+    (``model.positions`` posed, ``model.rest_positions`` at rest, mm). ``fibres``: the
+    model's :func:`fibre_order`, where the caller has it."""
+    order, starts, ends = fibre_order(model) if fibres is None else fibres
     first, last = order[starts], order[ends]
     rest = np.asarray(model.rest_positions, dtype=np.float64).reshape(-1, 3)
     posed = np.asarray(model.positions, dtype=np.float64).reshape(-1, 3)
@@ -83,11 +84,11 @@ def shortening_factors(model: MSSModel) -> np.ndarray:
     return per_particle
 
 
-def fibre_tangents(model: MSSModel, positions=None) -> np.ndarray:
+def fibre_tangents(model: MSSModel, positions=None, fibres=None) -> np.ndarray:
     """(n, 3) unit vectors: each particle's fibre direction at ``positions`` (n, 3) mm (default
     the rest positions): from its predecessor to its successor along the fibre; at the ends,
-    the end segment."""
-    order, starts, ends = fibre_order(model)
+    the end segment. ``fibres``: the model's :func:`fibre_order`, where the caller has it."""
+    order, starts, ends = fibre_order(model) if fibres is None else fibres
     rest = np.asarray(model.rest_positions if positions is None else positions,
                       dtype=np.float64).reshape(-1, 3)
     following, preceding = np.empty(len(order), np.int64), np.empty(len(order), np.int64)
@@ -147,10 +148,11 @@ def kept_shape_lengths(rest_positions, order, offsets, s: float) -> np.ndarray:
     return polyline_lengths(rest @ volume_kept_stretch(axis / size, s).T, order, offsets)
 
 
-def shortened_target(model: MSSModel) -> np.ndarray | None:
+def shortened_target(model: MSSModel, fibres=None) -> np.ndarray | None:
     """(n, 3) mm: the connective tissue's target with the shortened muscles' rest shapes
-    (module docstring), or None where no muscle's ends come closer than at rest."""
-    order, starts, ends = fibre_order(model)
+    (module docstring), or None where no muscle's ends come closer than at rest. ``fibres``:
+    the model's :func:`fibre_order`, where the caller has it."""
+    order, starts, ends = fibre_order(model) if fibres is None else fibres
     first, last = order[starts], order[ends]
     factor = muscle_shortening(model, first, last)
     if not (factor < 1.0).any():
@@ -183,16 +185,17 @@ def shortened_springs(model: MSSModel) -> MSSModel:
     connective tissue's target of :func:`shortened_target`. ``model`` itself where no fibre
     and no muscle shortens."""
     rest_length = np.asarray(model.rest_length, dtype=np.float64)
-    factor = shortening_factors(model)
+    fibres = fibre_order(model)
+    factor = shortening_factors(model, fibres)
     springs = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
     i, j = springs[:, 0], springs[:, 1]
     s = 0.5 * (factor[i] + factor[j])
     shortening = s < 1.0
-    target = shortened_target(model)
+    target = shortened_target(model, fibres)
     if not shortening.any():
         return model if target is None else dataclasses.replace(model, tissue_target=target)
     i, j, s = i[shortening], j[shortening], s[shortening]
-    tangents = fibre_tangents(model)
+    tangents = fibre_tangents(model, fibres=fibres)
     direction = tangents[i] + tangents[j]
     direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
     rest = np.asarray(model.rest_positions, dtype=np.float64).reshape(-1, 3)
