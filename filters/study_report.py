@@ -243,11 +243,13 @@ def write_tables(study: Study, out: str) -> None:
               ([r[c] for c in SUMMARY_COLUMNS] for r in series.rows))
 
 
-def _image(out: str, name: str, alt: str) -> str:
+def _image(out: str, name: str, alt: str, numbers: str | None = None) -> str:
+    """The figure ``name``.png embedded, captioned ``alt`` and the CSV with its numbers
+    (``numbers``, default ``name``)."""
     with open(os.path.join(out, f"{name}.png"), "rb") as f:
         data = base64.b64encode(f.read()).decode("ascii")
     return (f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
-            f'<figcaption>{html.escape(alt)} ({name}.png; numbers in {name}.csv)'
+            f'<figcaption>{html.escape(alt)} ({name}.png; numbers in {numbers or name}.csv)'
             "</figcaption></figure>")
 
 
@@ -255,6 +257,10 @@ def _cell(value) -> str:
     if isinstance(value, (float, np.floating)):
         return "–" if not np.isfinite(value) else f"{value:.4g}"
     return html.escape(str(value))
+
+
+def _slope(value: float) -> str:
+    return "–" if not np.isfinite(value) else f"{value:.2f}"
 
 
 def _table(rows) -> str:
@@ -279,8 +285,8 @@ def muscle_rows(study: Study) -> list:
         own = [r for r in series.rows if r[A.MUSCLE] == name]
         rows.append((name, f"{mean.min():.1f} / {mean.max():.1f}",
                      f"{path.min():.1f} / {path.max():.1f}",
-                     f"{_cell(follow_slope(own))} "
-                     f"({_cell(follow_slope(own, A.MEAN_KEPT_SHAPE_STRAIN))})",
+                     f"{_slope(follow_slope(own))} "
+                     f"({_slope(follow_slope(own, A.MEAN_KEPT_SHAPE_STRAIN))})",
                      f"{series.arc_chord[:, k].max():.2f} ({series.rest_arc_chord[k]:.2f}), "
                      f"{series.bend[:, k].max():.2f}",
                      int(np.count_nonzero(series.buckled[:, k])),
@@ -361,7 +367,7 @@ def report_html(study: Study, out: str) -> str:
         _image(out, FIBRE_LENGTH, "fibre length change and path length change per muscle"),
         _table(muscle_rows(study)),
         _image(out, TORTUOSITY, "largest fibre bend (arc/chord over that at rest) per muscle "
-               "over time"),
+               "over time", numbers=FIBRE_LENGTH),
         buckling_text(study),
         "<h2>3. Volume</h2>",
         f"<p>Mean volume error over all muscles and time points {volume.mean():.2f} % "

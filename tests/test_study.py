@@ -2,6 +2,7 @@
 small demo scene, and the measures it is built from."""
 import csv
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -30,6 +31,8 @@ def test_the_study_writes_its_report_figures_and_tables(study_out, small_scene):
     text = (study_out / "report.html").read_text()
     assert text.count("data:image/png;base64,") == len(FIGURES)   # opens on its own
     assert "http://" not in text and "https://" not in text
+    named = re.findall(r"numbers in ([\w.]+\.csv)", text)      # every caption's CSV is there
+    assert len(named) == len(FIGURES) and all((study_out / n).is_file() for n in named)
     layouts = {r["layout"]: r for r in _rows(study_out / "layouts.csv")}
     assert list(layouts) == list(LAYOUTS)
     per = {k: float(r["springs_per_particle"]) for k, r in layouts.items()}
