@@ -130,16 +130,15 @@ class ProgressBar:
 
 
 def summary_table(rows) -> str:
-    """Per muscle over the whole motion: mean and max volume error, max fibre strain, how its
-    fibres follow its end-to-end length (:func:`~.study.follow_slope`) and how its rest shape
-    stretched with its volume kept would (``kept``), their largest arc /
-    chord (above 1 a fibre bends or folds) and bend (that over its rest value: above 1 a fibre
-    bends more than at rest), max sphere overlap, the deepest surface vertex newly
-    in a bone as written (after the MVC Surface Deformer's push out) and before the push, the
-    largest drift of a surface vertex off its cage (mm), the largest share of the connective
-    tissue in the muscle's load (%), mean
-    iterations and seconds per time point; then the mean over muscles, and a line for each
-    muscle with vertices that left their cage (:mod:`muscle_mss.core.cage_drift`)."""
+    """Per muscle over the whole motion: mean and max volume error, max fibre strain, how its fibres
+    follow its end-to-end length (:func:`~.study.follow_slope`) and how its rest shape stretched
+    with its volume kept would (``kept``), their largest arc / chord (above 1 a fibre bends or
+    folds) and bend (that over its rest value: above 1 a fibre bends more than at rest), max
+    sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
+    Deformer's push out) and before the push, the largest drift of a surface vertex off its cage
+    (mm), the largest share of the connective tissue in the muscle's load (%), mean iterations
+    and seconds per time point; then the mean over muscles, and a line for each muscle with
+    vertices that left their cage (:mod:`muscle_mss.core.cage_drift`)."""
     from .study import follow_slope
     by_muscle = {}
     for r in rows:
