@@ -314,8 +314,8 @@ def buckling_text(study: Study) -> str:
     if not lines:
         return (f"<p>No fibre of any muscle bends beyond {BEND_LIMIT:g} times its arc/chord "
                 "at rest at any time point: no buckling.</p>")
-    return ("<p>Buckled (a fibre whose arc/chord exceeds its own at rest "
-            f"{BEND_LIMIT:g} times):</p><ul>") + \
+    return ("<p>Buckled (a fibre whose arc/chord is more than "
+            f"{BEND_LIMIT:g} times its own at rest):</p><ul>") + \
         "".join(lines) + "</ul>"
 
 
