@@ -138,8 +138,11 @@ def kept_shape_lengths(rest_positions, order, offsets, s: float) -> np.ndarray:
     centroids of the fibres' first and last particles): the lengths the fibres would have if the
     muscle kept its rest shape and volume while its ends moved ``s`` times as far apart. A
     curved fibre of a muscle that thickens as it shortens (or thins as it lengthens) changes
-    less than ``s``; a straight fibre along that line changes by ``s``."""
+    less than ``s``; a straight fibre along that line changes by ``s``. NaN where ``s`` is not
+    positive (the ends on one point)."""
     rest = np.asarray(rest_positions, dtype=np.float64)
+    if not s > 0.0:
+        return np.full(len(offsets) - 1, np.nan)
     firsts, lasts = rest[order[offsets[:-1]]], rest[order[offsets[1:] - 1]]
     axis = lasts.mean(axis=0) - firsts.mean(axis=0)
     size = np.linalg.norm(axis)

@@ -220,3 +220,4 @@ def test_the_kept_shape_reference_scales_straight_fibres_by_s_and_curved_ones_le
     for s in (0.7, 1.2):
         ratio = kept_shape_lengths(spindle, order, offsets, s) / rest_lengths
         assert (np.minimum(s, 1.0) < ratio).all() and (ratio < np.maximum(s, 1.0)).all()
+    assert np.isnan(kept_shape_lengths(spindle, order, offsets, 0.0)).all()   # ends on one point
