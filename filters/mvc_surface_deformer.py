@@ -42,7 +42,7 @@ from muscle_mss.core.cage import (Cage, fibre_polylines, muscle_cage, polyline_c
 from muscle_mss.core.cage_drift import CAGE_DRIFT_LIMIT, cage_distances, cage_drift
 from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
+from muscle_mss.core.mvc import bounded_coordinates, mvc_deform
 from muscle_mss.core.rigid_fit import fitted_rigid_transform
 from muscle_mss.core.surface_normals import point_normals
 from muscle_mss.core.triangle_distance import prepared_surface
@@ -77,8 +77,8 @@ def stored_weights(cage_points, cage_triangles, points, where) -> np.ndarray:
         if weights.dtype == np.float32 and weights.shape == (len(points), len(cage_points)):
             weight_counts["loaded"] += 1
             return weights
-    weights = mean_value_coordinates(cage_points, cage_triangles, points,
-                                     where=where).astype(np.float32)
+    weights = bounded_coordinates(cage_points, cage_triangles, points,
+                                  where=where).astype(np.float32)
     weight_counts["computed"] += 1
     WEIGHTS_STORE.save(key, {"weights": weights})
     return weights

@@ -5,7 +5,8 @@ from scipy.spatial import ConvexHull
 
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.mesh_checks import surface_problems
-from muscle_mss.core.mvc import mean_value_coordinates, mvc_deform
+from muscle_mss.core.mvc import (ILL_CONDITIONED, WELL_CONDITIONED, bounded_coordinates,
+                                mean_value_coordinates, mvc_deform, nearest_point_weights)
 from muscle_mss.core.volume import signed_volume
 
 OFFSET = np.array([310.0, -205.0, 820.0])   # mm: muscles sit far from the origin
@@ -244,3 +245,66 @@ def test_bad_input_is_refused():
         mean_value_coordinates(cage, triangles, np.array([[0.0, 0, 0], [np.nan, 0, 0]]))
     with pytest.raises(MuscleMSSError, match="at least 4 points"):
         mean_value_coordinates(cage[:3], triangles[:1], cage[:1])
+
+
+@pytest.mark.parametrize("name", sorted(CAGES))
+def test_next_to_a_vertex_an_edge_and_a_face_inside_and_outside(name):
+    """Points on and next to the cage (1e-9 to 0.1 mm off a face, an edge and a vertex, on
+    both sides) get weights that sum to one, reproduce them, stay bounded (they approach the
+    barycentric weights on the cage), and are left as they are by bounded_coordinates."""
+    cage, triangles = CAGES[name]()
+    a, b, c = (cage[triangles[:, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    places = [0.2 * a + 0.5 * b + 0.3 * c, 0.4 * a + 0.6 * b, a]
+    x = np.concatenate([place + side * h * normal for place in places
+                        for h in (0.0, 1e-9, 1e-6, 1e-3, 0.1) for side in (1.0, -1.0)])
+    w = mean_value_coordinates(cage, triangles, x)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(w @ cage, x, rtol=0, atol=1e-9)
+    assert np.abs(w).sum(axis=1).max() < 1.1
+    np.testing.assert_array_equal(bounded_coordinates(cage, triangles, x), w)
+
+
+def folded_cube():
+    """The cube cage with corner 0 pushed through the opposite corner: closed, outward in
+    volume, but folded over itself (as a lattice cage whose ring fibres cross)."""
+    cage, triangles = cube_cage()
+    centre = cage.mean(axis=0)
+    cage[0] = centre + 1.6 * (centre - cage[0])
+    return cage, triangles
+
+
+def test_a_folded_cage_gets_bounded_weights():
+    cage, triangles = folded_cube()
+    assert surface_problems(cage, triangles) == []
+    x = cage.mean(axis=0) + np.random.default_rng(8).uniform(-25.0, 25.0, (4000, 3))
+    w = mean_value_coordinates(cage, triangles, x)
+    spread = np.abs(w).sum(axis=1)
+    # the control: next to the fold the total weight cancels and the weights explode
+    assert spread.max() > 1000.0
+    well, ill = spread <= WELL_CONDITIONED, spread >= ILL_CONDITIONED
+    assert well.sum() > 100 and ill.sum() > 100 and (~well & ~ill).sum() > 10
+    bounded = bounded_coordinates(cage, triangles, x)
+    np.testing.assert_allclose(bounded.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    assert np.abs(bounded).sum(axis=1).max() <= WELL_CONDITIONED + 1e-9
+    np.testing.assert_array_equal(bounded[well], w[well])
+    np.testing.assert_array_equal(bounded[ill], nearest_point_weights(cage, triangles, x[ill]))
+    np.testing.assert_allclose(bounded[well] @ cage, x[well], rtol=0, atol=1e-9)
+
+
+def test_nearest_point_weights_off_a_face_an_edge_and_a_corner():
+    cage, triangles = cube_cage()
+    centre = cage.mean(axis=0)
+    # corner 0 is (0, 0, 0) of the unit cube, corner 4 (1, 0, 0), corner 1 (0, 0, 1)
+    on_face = 0.3 * cage[0] + 0.45 * cage[4] + 0.25 * cage[1]     # a point of the face y = 0
+    outward = cage[0] - cage[2]                                   # -y, 20 mm
+    edge = 0.5 * (cage[0] + cage[4])
+    x = np.stack([on_face + 0.4 * outward, on_face - 0.1 * outward,
+                  edge + 0.5 * (edge - centre), cage[0] + 0.3 * (cage[0] - centre)])
+    w = nearest_point_weights(cage, triangles, x)
+    assert w.min() >= 0.0 and (np.count_nonzero(w, axis=1) <= 3).all()
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(w[:2] @ cage, [on_face, on_face], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(w[2, [0, 4]], [0.5, 0.5], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(w[3, 0], 1.0, rtol=0, atol=1e-12)
