@@ -141,6 +141,7 @@ class MuscleFilter(VTKPythonAlgorithmBase):
                     raise MuscleMSSError(f"input '{port.name}' is not connected; this input is "
                                          f"required: {port.doc[:1].lower()}{port.doc[1:]}")
                 inputs.append(data)
+            self._check_sources(inputs)
             self.execute(inputs, outputs)
         except MuscleMSSError as err:
             self._fail(err, outputs)
@@ -163,6 +164,22 @@ class MuscleFilter(VTKPythonAlgorithmBase):
             _failing.discard(self)
         else:
             _failing.add(self)
+
+    def _check_sources(self, inputs):
+        """Refuse an empty input that a reader left empty because its file does not exist or
+        cannot be read, naming the file: the filter's own check would call the input empty
+        ("fibres.vtm has no blocks") when the file is what is missing (a state file loaded
+        away from its data folder, after ParaView's reader error)."""
+        for i, (port, data) in enumerate(zip(self.INPUTS, inputs)):
+            if data is None or not is_empty(data):
+                continue
+            for c in range(self.GetNumberOfInputConnections(i)):
+                problem = unread_file(self.GetInputConnection(i, c).GetProducer())
+                if problem is not None:
+                    name, why = problem
+                    what = f"{os.path.basename(name)}: " if name else ""
+                    raise MuscleMSSError(f"{what}the reader produced nothing for input "
+                                         f"'{port.name}': {why}; {STATE_HINT}")
 
     def _fail(self, err, outputs):
         """Record ``err`` for :meth:`Update`, empty the outputs and show the message (ParaView's
@@ -253,6 +270,77 @@ def upstream_error(algorithm):
             if error is not None:
                 return error
     return None
+
+
+STATE_HINT = ("if the pipeline comes from a state file, load it with its data folder: "
+              "LoadState(STATE, data_directory=FOLDER) in pvpython, 'Search files under "
+              "specified directory' in ParaView's Load State dialog (see state_files/README.md)")
+"""What the message of a reader's missing file advises: a state file keeps the file names it
+was saved with."""
+
+
+def is_empty(data) -> bool:
+    """Whether a data object holds nothing: a multiblock without a non-empty leaf, a table
+    without columns, a dataset without points."""
+    if data.IsA("vtkCompositeDataSet"):
+        it = data.NewIterator()
+        it.SkipEmptyNodesOn()
+        it.InitTraversal()
+        return bool(it.IsDoneWithTraversal())
+    if data.IsA("vtkTable"):
+        return data.GetNumberOfColumns() == 0
+    if data.IsA("vtkDataSet"):
+        return data.GetNumberOfPoints() == 0
+    return False
+
+
+def reader_files(algorithm):
+    """The file names ``algorithm`` reads if it is a reader (an empty name where none is set),
+    else None: ParaView's file-series wrapper (``vtkFileSeriesReader``, which ParaView puts
+    around its XML and CSV readers) gives the names it was given, another reader its
+    ``FileName``."""
+    count = getattr(algorithm, "GetNumberOfFileNames", None)
+    if count is not None:
+        return [algorithm.GetFileName(i) or "" for i in range(count())] or [""]
+    get = getattr(algorithm, "GetFileName", None)
+    if get is None:
+        return None
+    try:
+        name = get()
+    except TypeError:   # a GetFileName that needs an argument: not a reader's
+        return None
+    return [name if isinstance(name, str) else ""]
+
+
+def unread_file(algorithm):
+    """Why a reader at or upstream of ``algorithm`` (not through a muscle-mss filter, which
+    reports its own inputs) has nothing to read: ``(file name, why)`` for the first of its
+    files that is not set (name "") or does not exist or cannot be read, or None."""
+    seen = set()
+
+    def visit(alg):
+        if alg is None or id(alg) in seen or isinstance(alg, MuscleFilter):
+            return None
+        seen.add(id(alg))
+        for name in reader_files(alg) or ():
+            if not name:
+                return "", ("the reader has no file name (LoadState leaves it empty for a "
+                            "file it does not find under its data_directory)")
+            path = os.path.abspath(name)
+            if not os.path.exists(path):
+                return name, f"the file {path} does not exist"
+            if not os.path.isfile(path):
+                return name, f"{path} is not a file"
+            if not os.access(path, os.R_OK):
+                return name, f"the file {path} cannot be read (no permission)"
+        for port in range(alg.GetNumberOfInputPorts()):
+            for c in range(alg.GetNumberOfInputConnections(port)):
+                problem = visit(alg.GetInputConnection(port, c).GetProducer())
+                if problem is not None:
+                    return problem
+        return None
+
+    return visit(algorithm)
 
 
 _running = []

@@ -287,6 +287,7 @@ class MSSCollisionSolver(MuscleFilter):
         # shares them), so they are checked, concatenated and hashed once
         self._blocks = {}
         self._static = (None, None)
+        self._ignored_warned = ()     # the ignored settings last warned about
         self.setup_counts = {"checked": 0, "remembered": 0, "prepared": 0, "rest state": 0}
 
     def settings(self) -> SolverSettings:
@@ -310,7 +311,36 @@ class MSSCollisionSolver(MuscleFilter):
             quasi_static=QuasiStaticSettings(tolerance=self.value("Tolerance"),
                                              springs=self.choice("Springs")))
 
+    def ignored_settings(self) -> list:
+        """Warnings for properties set away from their default that the other properties make
+        ineffective: TissueAlongFibres with no connective tissue, BoneSphereSpacing with the
+        bones as solids. Not refused: in ParaView properties are set one at a time."""
+        ignored = []
+        along = self.value("TissueAlongFibres")
+        if self.value("ConnectiveTissue") == 0.0 and along != DEFAULT_TISSUE_ALONG:
+            ignored.append(f"TissueAlongFibres {along:g} has no effect with ConnectiveTissue 0: "
+                           "it is the connective tissue's stiffness along the fibres, and the "
+                           "tissue is off; raise ConnectiveTissue above 0 for it to apply, or "
+                           f"leave TissueAlongFibres at its default {DEFAULT_TISSUE_ALONG:g}")
+        spacing = self.value("BoneSphereSpacing")
+        if self.choice("BoneContact") == BONE_CONTACT_SOLID and spacing != DEFAULT_SPACING:
+            ignored.append(f"BoneSphereSpacing {spacing:g} mm has no effect with BoneContact "
+                           f"'{BONE_CONTACT_SOLID}': the bones are solids, not spheres; set "
+                           f"BoneContact to '{BONE_CONTACT_SPHERES}' for it to apply, or leave "
+                           f"BoneSphereSpacing at its default {DEFAULT_SPACING:g} mm")
+        return ignored
+
+    def _warn_ignored_settings(self):
+        """Print :meth:`ignored_settings` (ParaView's output messages) when they change, not
+        at every time point."""
+        ignored = tuple(self.ignored_settings())
+        for text in ignored:
+            if text not in self._ignored_warned:
+                vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {text}\n")
+        self._ignored_warned = ignored
+
     def execute(self, inputs, outputs):
+        self._warn_ignored_settings()
         blocks = V.blocks(inputs[0], where=MODEL)
         if not blocks:
             raise MuscleMSSError(f"the {MODEL} input has no blocks; it needs one block per "

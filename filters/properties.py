@@ -8,6 +8,7 @@ attribute in ``paraview.simple`` and the key in state files: never rename one ca
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from muscle_mss.core.errors import MuscleMSSError
@@ -70,11 +71,15 @@ class Property:
         """Why a stored value is outside the property's range, or None.
 
         Ranges are checked when the filter runs (not in the setter), so that ParaView reports
-        them as a filter error with an empty output rather than a traceback from a setter.
+        them as a filter error with an empty output rather than a traceback from a setter. A
+        NaN or an infinity is out of every range (a NaN compares false with both bounds, and
+        a property a method does not read, TimeStep under the quasi-static one, was taken).
         """
         if self.kind not in ("int", "double"):
             return None
         where = f"{owner} property {self.name}" if owner else f"property {self.name}"
+        if not math.isfinite(value):
+            return f"{where} is {value}; it must be a finite number"
         if self.minimum is not None and value < self.minimum:
             return f"{where} is {value}; it must be at least {self.minimum}"
         if self.maximum is not None and value > self.maximum:

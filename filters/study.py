@@ -51,10 +51,11 @@ ACCEPTED_VOLUME_ERROR_PCT = 6.0
 SLOPE_WINDOW = (0.5, 1.0)
 """The later phase of the paper relaxation whose slope Fig. 6 compares: these fractions of the
 iterations (the second half), fitted as log10(mean displacement) against the iteration."""
-PAPER_MODEL = {"Method": METHOD_RELAXATION, "ConnectiveTissue": 0.0, "TissueAlongFibres": 1.0,
-               "FibreShortening": False}
+PAPER_MODEL = {"Method": METHOD_RELAXATION, "ConnectiveTissue": 0.0, "FibreShortening": False}
 """The solver's properties of the layouts' paper relaxation: the paper's method and model (no
-connective tissue, fibres that keep their rest lengths), whatever the defaults are."""
+connective tissue, fibres that keep their rest lengths), whatever the defaults are
+(TissueAlongFibres, which only the tissue reads, stays at its default: set, the solver would
+warn that it has no effect)."""
 DEFAULT_MODEL = {"Method": METHOD_QUASI_STATIC, "ConnectiveTissue": DEFAULT_CONNECTIVE_TISSUE,
                  "TissueAlongFibres": DEFAULT_TISSUE_ALONG,
                  "FibreShortening": DEFAULT_FIBRE_SHORTENING}

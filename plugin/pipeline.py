@@ -29,6 +29,61 @@ def load_plugin():
         simple.LoadPlugin(PLUGIN_FILE, ns=vars(simple))
 
 
+def state_file_names(state_file) -> dict:
+    """``{source name: [file names]}`` of the readers a state file creates, as it stores them
+    (relative names stay relative)."""
+    import xml.etree.ElementTree as ET
+    root = ET.parse(state_file).getroot()
+    names = {item.get("id"): item.get("name")
+             for collection in root.iter("ProxyCollection") if collection.get("name") == "sources"
+             for item in collection.iter("Item")}
+    files = {}
+    for proxy in root.iter("Proxy"):
+        if proxy.get("group") != "sources" or proxy.get("id") not in names:
+            continue
+        for prop in proxy.findall("Property"):
+            if prop.get("name") == "FileName":
+                files[names[proxy.get("id")]] = [e.get("value") for e in prop.findall("Element")]
+    return files
+
+
+def load_state(state_file, data_directory=None, **options):
+    """Load the plugin, then the state file ``state_file`` with its data files looked up under
+    ``data_directory`` (``LoadState``'s, restricted to that folder when given; other ``options``
+    go to ``LoadState``).
+
+    Raise :class:`~muscle_mss.core.errors.MuscleMSSError` naming the first file of the state
+    that its reader cannot read: ParaView's ``LoadState`` prints its readers' errors and
+    carries on, so that a script would exit 0 with every filter's output empty."""
+    from paraview import simple
+    from muscle_mss.core.errors import MuscleMSSError
+    saved = state_file_names(state_file)
+    load_plugin()
+    if data_directory is not None:
+        options = {"data_directory": data_directory, "restrict_to_data_directory": True,
+                   **options}
+    simple.LoadState(state_file, **options)
+    for (name, _), proxy in sorted(simple.GetSources().items()):
+        if "FileName" not in proxy.ListProperties():
+            continue
+        files = proxy.FileName
+        files = [files] if isinstance(files, str) else list(files)
+        for k, path in enumerate(files):
+            if path and os.path.isfile(path) and os.access(path, os.R_OK):
+                continue
+            stored = saved.get(name, files)[k] if k < len(saved.get(name, files)) else path
+            if data_directory is not None:
+                why = f"not found under the data folder {data_directory}"
+            elif not os.path.exists(path):
+                why = f"{os.path.abspath(path)} does not exist"
+            else:
+                why = f"{os.path.abspath(path)} cannot be read"
+            raise MuscleMSSError(
+                f"{state_file}: reader {name!r} reads {stored}: {why}; load the state with its "
+                "data folder, load_state(STATE, data_directory=FOLDER) with FOLDER holding "
+                f"{stored} (see state_files/README.md)")
+
+
 def build_pipeline(scene_folder, show=True, settings=None):
     """Create readers and filters for ``scene_folder``; return them by name.
 

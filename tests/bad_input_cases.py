@@ -412,6 +412,22 @@ CASES = [
          r"--springs co-rotational applies only to --method quasi-static \(its spring energy\)"
          r".*drop --springs or add --method quasi-static",
          options=("--method", "paper", "--springs", "co-rotational"), chain=False),
+    Case("tissue-along-without-tissue", "`--connective-tissue 0 --tissue-along 0.5` "
+         "(TissueAlongFibres 0.5, ConnectiveTissue 0; ignored silently, before): the run gives "
+         "the paper model's results",
+         r"MSS Collision Solver: TissueAlongFibres 0.5 has no effect with ConnectiveTissue 0: "
+         r"it is the connective tissue's stiffness along the fibres, and the tissue is off",
+         options=("--connective-tissue", "0", "--tissue-along", "0.5"),
+         settings={"ConnectiveTissue": 0.0, "TissueAlongFibres": 0.5}, warns=True),
+    Case("timestep-nan", "MSS Collision Solver TimeStep NaN under the quasi-static method "
+         "(accepted, before)",
+         r"MSS Collision Solver: property TimeStep is nan; it must be a finite number",
+         settings={"TimeStep": float("nan")}, cli=False),
+    Case("bone-spacing-with-solid", "BoneSphereSpacing 3 mm with BoneContact solid (the "
+         "default; ignored silently, before)",
+         r"MSS Collision Solver: BoneSphereSpacing 3 mm has no effect with BoneContact 'solid': "
+         r"the bones are solids, not spheres",
+         settings={"BoneSphereSpacing": 3.0}, cli=False, warns=True),
     Case("write-nothing", "`--write ''` (everything written, before)",
          r"--write '' names no series to write; give one or more of surfaces,fibres,particles",
          options=("--write", ""), chain=False),

@@ -127,6 +127,92 @@ def test_ctrl_c_in_a_filter_stops_the_run_as_an_interruption(scenes, tmp_path, m
     assert "interrupted: Ctrl-C while MVC Surface Deformer ran" in stderr
 
 
+def test_an_input_from_a_reader_of_a_missing_file_names_the_file(tmp_path):
+    """ParaView's readers (a vtkFileSeriesReader around the XML reader) leave an empty output
+    after their error when their file is missing (a state file loaded away from its data): the
+    filter names the file, not "fibres.vtm has no blocks". A Python reader that does the same
+    stands in for ParaView's here (tests/test_paraview.py loads the shipped state)."""
+    from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
+    from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet
+    from vtkmodules.vtkFiltersCore import vtkPassThrough
+    from muscle_mss.filters import FibreResampler
+
+    class Reader(VTKPythonAlgorithmBase):
+        def __init__(self):
+            super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkMultiBlockDataSet")
+            self.name = None
+
+        def SetFileName(self, name):
+            self.name = name
+            self.Modified()
+
+        def GetFileName(self):
+            return self.name
+
+        def RequestData(self, request, in_info, out_info):
+            vtkMultiBlockDataSet.GetData(out_info).Initialize()
+            return 1
+
+    missing = tmp_path / "scene" / "fibres.vtm"
+    reader, between = Reader(), vtkPassThrough()   # ParaView puts a vtkPVPostFilter between
+    reader.SetFileName(str(missing))
+    between.SetInputConnection(reader.GetOutputPort())
+    resampler = FibreResampler()
+    resampler.SetInputConnection(0, between.GetOutputPort())
+    with pytest.raises(MuscleMSSError) as raised:
+        resampler.Update()
+    assert str(raised.value).startswith(
+        f"fibres.vtm: the reader produced nothing for input 'Fibres': the file {missing} does "
+        "not exist; if the pipeline comes from a state file, load it with its data folder")
+    reader.SetFileName("")
+    with pytest.raises(MuscleMSSError, match=r"^the reader produced nothing for input 'Fibres': "
+                       r"the reader has no file name"):
+        resampler.Update()
+    missing.parent.mkdir()
+    missing.write_text("")          # there, but empty: the filter's own check speaks
+    reader.SetFileName(str(missing))
+    with pytest.raises(MuscleMSSError, match=r"^fibres.vtm has no blocks"):
+        resampler.Update()
+    assert [p.name for p in tmp_path.rglob("*")] == ["scene", "fibres.vtm"]
+
+
+def test_settings_a_solver_ignores_are_warned_once_not_at_every_time_point():
+    """TissueAlongFibres without the tissue and BoneSphereSpacing with solid bones: a warning
+    when set so (in ParaView one at a time, so not refused), again only when they change."""
+    from muscle_mss.filters import MSSCollisionSolver
+    from muscle_mss.filters.scene_io import vtk_messages
+    solver = MSSCollisionSolver()
+
+    def warned():
+        with vtk_messages() as window:
+            solver._warn_ignored_settings()
+        return [line for line in window.GetOutput().splitlines() if "has no effect" in line]
+
+    assert warned() == []
+    solver.SetConnectiveTissue(0.0)
+    assert warned() == []       # TissueAlongFibres at its default: nothing was asked of it
+    solver.SetTissueAlongFibres(0.5)
+    assert len(warned()) == 1 and warned() == []
+    solver.SetBoneSphereSpacing(3.0)
+    assert [line.split(":")[1] for line in warned()] == [" BoneSphereSpacing 3 mm has no effect"
+                                                          " with BoneContact 'solid'"]
+    solver.SetBoneContact("sphere set")
+    solver.SetConnectiveTissue(0.1)
+    assert warned() == [] and solver.ignored_settings() == []
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_a_double_property_refuses_nan_and_infinity_whatever_the_method(value):
+    """A NaN compares false with both bounds of a range: TimeStep NaN was taken under the
+    quasi-static method, which does not read it."""
+    from muscle_mss.filters import MSSCollisionSolver, SpringBuilder
+    for owner, name in ((MSSCollisionSolver, "TimeStep"), (MSSCollisionSolver, "TimeBudget"),
+                        (SpringBuilder, "Mass")):
+        prop = next(p for p in owner.PROPERTIES if p.name == name)
+        assert prop.range_problem(value) == (f"property {name} is {value}; it must be a "
+                                             "finite number")
+
+
 def test_integer_properties_refuse_fractions():
     from muscle_mss.filters import FibreResampler, MSSCollisionSolver
     with pytest.raises(MuscleMSSError, match="ParticlesPerFibre: 2.7 is not a whole number"):

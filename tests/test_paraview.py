@@ -296,6 +296,59 @@ def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
     assert all(len(v) == len(scene.motion.times) for v in shown["strain_values"])
 
 
+def _digest(path) -> str:
+    import hashlib
+    with open(path, "rb") as f:
+        return hashlib.sha1(f.read()).hexdigest()
+
+
+@pytest.mark.parametrize("how, expect", [
+    ("LoadState", "Fibre Resampler: fibres.vtm: the reader produced nothing for input 'Fibres': "
+                  "the file {folder}/demo_out/scene/fibres.vtm does not exist; if the pipeline "
+                  "comes from a state file, load it with its data folder: "
+                  "LoadState(STATE, data_directory=FOLDER)"),
+    ("LoadState-empty", "Fibre Resampler: the reader produced nothing for input 'Fibres': the "
+                        "reader has no file name (LoadState leaves it empty for a file it does "
+                        "not find under its data_directory)")])
+def test_a_state_loaded_without_its_scene_names_the_missing_file(tmp_path, how, expect):
+    """The shipped state loaded in a folder without demo_out/scene (or with a data folder that
+    lacks it): after ParaView's reader errors the Fibre Resampler names the file its reader could
+    not read, not "fibres.vtm has no blocks", and nothing downstream complains."""
+    from paraview_support import run
+    state = SCRIPTS.parents[1] / "state_files" / "demo_walk.pvsm"
+    before = _digest(state)
+    proc = run(["xvfb-run", "-a", "pvpython", SCRIPTS / "state_without_data.py", state, how],
+               cwd=tmp_path)
+    assert expect.format(folder=tmp_path) in proc.stderr, proc.stderr[-3000:]
+    assert "has no blocks; it needs one block per muscle" not in proc.stderr
+    for downstream in ("Spring Builder:", "Rigid Pose Transform:", "MSS Collision Solver:",
+                       "MVC Surface Deformer:", "Volume-Error Probe:"):
+        assert downstream not in proc.stderr, proc.stderr[-3000:]
+    assert '"probe_blocks": 0' in proc.stdout
+    assert _digest(state) == before
+
+
+def test_load_state_without_its_scene_exits_non_zero_naming_the_missing_file(tmp_path):
+    """ParaView's LoadState carries on past missing files (the script exited 0 with every output
+    empty); muscle_mss.plugin.pipeline.load_state raises, so pvpython exits 1."""
+    import subprocess
+    from paraview_support import paraview_env, warm_paraview_python, x_display
+    warm_paraview_python()
+    state = SCRIPTS.parents[1] / "state_files" / "demo_walk.pvsm"
+    before = _digest(state)
+    proc = subprocess.run(["pvpython", str(SCRIPTS / "state_without_data.py"), str(state),
+                           "load_state"], cwd=tmp_path, env=paraview_env(DISPLAY=x_display()),
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith(
+        f"muscle_mss.core.errors.MuscleMSSError: {state}: reader 'bones.vtm' reads "
+        f"demo_out/scene/bones.vtm: {tmp_path}/demo_out/scene/bones.vtm does not exist; load "
+        "the state with its data folder, load_state(STATE, data_directory=FOLDER)"), last
+    assert "RESULT" not in proc.stdout
+    assert _digest(state) == before
+
+
 @pytest.mark.parametrize("settings, message", [
     ('{"ParticlesPerFibre": 1}',
      "Fibre Resampler: property ParticlesPerFibre is 1; it must be at least 2"),
