@@ -29,6 +29,12 @@ SPHERES_PER_AREA = 0.62         # centres ~ SPHERES_PER_AREA * area / spacing^2
 CANDIDATES_PER_SPACING = 2      # candidate grid step = spacing / 2
 ORDER_BLOCK = 4096              # candidates shuffled within blocks of this many (cache locality)
 ORDER_SEED = 20140301           # fixed visiting order: same surface, same spheres
+# The largest spacing, as a fraction of the bone's smallest bounding-box side: each sphere's
+# radius is the spacing, so the spheres stand that far off the bone and hold the muscles there.
+# BoneSphereSpacing 1e6 mm made one sphere per bone that held every muscle 1e6 mm out (the
+# small demo thigh's quasi-static solve wrote volume errors of 3e14 %). The demo bones' smallest
+# sides are 23.5 mm (the ulna) to 133 mm (the pelvis): 5.9-33 mm allowed, 2.05 by default.
+MAX_SPACING_SHARE = 0.25
 
 
 @njit(cache=True)
@@ -162,6 +168,15 @@ def bone_spheres(points, triangles, spacing: float | None = None, count: int | N
         spacing = DEFAULT_SPACING if spacing is None else float(spacing)
         if not spacing > 0.0:
             raise MuscleMSSError(f"{where}: bone sphere spacing is {spacing}; it must be positive")
+        side = float(np.ptp(points, axis=0).min()) if len(points) else 0.0
+        if spacing > MAX_SPACING_SHARE * side:
+            raise MuscleMSSError(
+                f"{where}: bone spheres {spacing:g} mm apart are too large for a bone whose "
+                f"bounding box is {side:.3g} mm at its thinnest: each sphere's radius is the "
+                "spacing, and spheres larger than a quarter of that "
+                f"({MAX_SPACING_SHARE * side:.3g} mm) hold the muscles that far off the bone; "
+                f"lower the MSS Collision Solver's BoneSphereSpacing (default {DEFAULT_SPACING:g} "
+                "mm)")
         centres = _sample(points, triangles, spacing, len(points) + 10 ** 9, where)
         return centres, np.full(len(centres), spacing)
     count = int(count)

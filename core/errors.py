@@ -3,6 +3,8 @@
 Every check of user input raises :class:`MuscleMSSError` with a sentence that names what is
 wrong and where (file, block, row, fibre) and the rule it breaks, so that a user can act on it.
 """
+from __future__ import annotations
+
 import os
 
 import numpy as np
@@ -46,6 +48,22 @@ def checked_points(points, what="points") -> np.ndarray:
         bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
         raise MuscleMSSError(f"{what}: point {bad} has a NaN or infinite coordinate")
     return points
+
+
+class PoseError(MuscleMSSError):
+    """A muscle that cannot be solved in the pose asked: its ends too close for FibreShortening,
+    or a solve that diverged. The core does not know the pose's time; the MSS Collision Solver
+    filter adds it with :meth:`at`. The message is ``muscle 'NAME'[ at time T s]`` followed by
+    ``text`` (which starts with ``:`` or a space)."""
+
+    def __init__(self, muscle: str, text: str, time: float | None = None):
+        self.muscle, self.text, self.time = muscle, text, time
+        when = "" if time is None else f" at time {time:g} s"
+        super().__init__(f"muscle '{muscle}'{when}{text}")
+
+    def at(self, time) -> "PoseError":
+        """The same error naming the time point ``time`` (s); itself when ``time`` is None."""
+        return self if time is None else PoseError(self.muscle, self.text, float(time))
 
 
 class Interrupted(KeyboardInterrupt):

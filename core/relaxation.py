@@ -56,7 +56,7 @@ from .bone_distance import BoneSolids
 from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_spheres,
                        contact_options, final_passes, gather_sphere, hash_state,
                        respond_sphere, solved_state, used_structures, world_box)
-from .errors import MuscleMSSError
+from .errors import MuscleMSSError, PoseError
 from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
                     stability_problem)
 from .connective_tissue import check_along, tissue_stiffness, tissue_targets
@@ -325,8 +325,8 @@ def _iterate(model, settings, mss, springs, contacts, control, lists, progress):
 
 def _diverged(model, settings, history, done, bad):
     """Raise the :class:`MuscleMSSError` of muscle ``bad`` diverging in iteration ``done``."""
-    raise MuscleMSSError(
-        f"muscle '{model.names[bad]}' diverged at iteration {done}: its mean particle "
+    raise PoseError(
+        model.names[bad], f" diverged at iteration {done}: its mean particle "
         f"displacement was {history.mean_displacement[done - 1, bad]:.3g} mm in one "
         f"iteration; lower the TimeStep (now {settings.relaxation.time_step} s) or "
         "check stiffness and mass")

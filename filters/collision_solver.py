@@ -64,7 +64,7 @@ from muscle_mss.core.model import MSSModel, PreparedModel, prepare, with_rest_st
 from muscle_mss.core.solver import solve
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
-from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.errors import MuscleMSSError, PoseError
 from muscle_mss.core.exact_bone_distance import particles_out_of_bones
 from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (
@@ -347,6 +347,13 @@ class MSSCollisionSolver(MuscleFilter):
                                  "muscle")
         identities, parts = zip(*(self._checked_block(name, block) for name, block in blocks))
         model = self._posed_model([name for name, _ in blocks], parts, identities)
+        try:
+            self._solve_pose(inputs, outputs, blocks, parts, identities, model)
+        except PoseError as err:
+            raise err.at(self.requested_time()) from None
+
+    def _solve_pose(self, inputs, outputs, blocks, parts, identities, model):
+        """:meth:`execute` from the posed ``model`` of the checked ``blocks`` on."""
         if self.value("FibreShortening"):
             # the rest lengths follow the pose: the spring layout is prepared for each pose
             model = shortened_springs(model)

@@ -230,7 +230,27 @@ def muscle_partly_into_femur(share):
     return mutate
 
 
+def insertion_onto_origin(muscle="rectus_femoris", index=TIME_INDEX):
+    """At time point ``index`` the insertion bone of ``muscle`` translated so that its fibres'
+    insertion centroid lands on their origin centroid (both posed): origin and insertion meet."""
+    def mutate(scene):
+        fibres = scene.fibres[muscle]
+        first = fibres.points[fibres.offsets[:-1]].mean(axis=0)
+        last = fibres.points[fibres.offsets[1:] - 1].mean(axis=0)
+        bones = list(scene.motion.bones)
+        origin = scene.motion.matrices[index, bones.index(fibres.origin_bone)]
+        insertion = scene.motion.matrices[index, bones.index(fibres.insertion_bone)]
+        insertion[:, 3] = origin[:, :3] @ first + origin[:, 3] - insertion[:, :3] @ last
+    return mutate
+
+
 # ---- the cases ----------------------------------------------------------------------------
+
+MEET = (r"MSS Collision Solver: muscle 'rectus_femoris' at time 0.5 s: its origin and "
+        r"insertion \(its fibres' end centroids\) are [0-9.e+-]+ mm apart, [0-9.e+-]+ % of "
+        r"their 488 mm at rest; FibreShortening gives no rest shape to a muscle or fibre whose "
+        r"ends come closer than 50% of their rest distance")
+"""The message of a pose that moves the rectus femoris' insertion onto its origin."""
 
 CASES = [
     Case("resolution-1", "`--resolution 1` (ParticlesPerFibre 1)",
@@ -280,6 +300,28 @@ CASES = [
          r"bone spheres 0.001 mm apart \(\d+ candidate points, a grid of .* cells\) would need "
          r".* GiB, more than the .* GiB .*raise the MSS Collision Solver's BoneSphereSpacing",
          cli=False, settings={"BoneContact": "sphere set", "BoneSphereSpacing": 1e-3}),
+    Case("bone-spacing-1e6", "BoneContact sphere set, BoneSphereSpacing 1e6 mm (one sphere a "
+         "bone: volume errors of 3e14 % without a word, before)",
+         r"MSS Collision Solver: PosedBones block 'pelvis': bone spheres 1e\+06 mm apart are too "
+         r"large for a bone whose bounding box is 133 mm at its thinnest.*lower the MSS Collision "
+         r"Solver's BoneSphereSpacing",
+         cli=False, settings={"BoneContact": "sphere set", "BoneSphereSpacing": 1e6}),
+    # a pose that moves a muscle's insertion onto its origin (the tibia onto the pelvis)
+    Case("origin-meets-insertion-8", "at 0.5 s the tibia posed onto the pelvis (the rectus "
+         "femoris' insertion on its origin), `--resolution 8` (29.6 million % volume error, "
+         "coordinates 16.6 m out, 'raise Iterations', before)",
+         MEET, scene=insertion_onto_origin(), options=("--resolution", "8"),
+         settings={"ParticlesPerFibre": 8}),
+    Case("origin-meets-insertion-20", "the same, `--resolution 20`",
+         MEET, scene=insertion_onto_origin(), options=("--resolution", "20"),
+         settings={"ParticlesPerFibre": 20}),
+    Case("origin-meets-insertion-paper-8", "the same, `--resolution 8 --method paper` "
+         "('lower the TimeStep', before)",
+         MEET, scene=insertion_onto_origin(), options=("--resolution", "8", "--method", "paper"),
+         settings={"ParticlesPerFibre": 8, "Method": "paper relaxation"}),
+    Case("origin-meets-insertion-paper-20", "the same, `--resolution 20 --method paper`",
+         MEET, scene=insertion_onto_origin(), options=("--resolution", "20", "--method", "paper"),
+         settings={"ParticlesPerFibre": 20, "Method": "paper relaxation"}),
     # scene files (issue 16 item 2, issue 13 item 4)
     Case("muscle-vtp-missing", "`muscles/muscles_1.vtp` deleted (muscles.vtm still names it)",
          r"muscles.vtm block 'vastus_lateralis': its file .*muscles_1.vtp is missing",

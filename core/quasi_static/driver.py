@@ -13,8 +13,9 @@ from ..bone_distance import BoneSolids, push_out_of_bones
 from ..connective_tissue import check_along, tissue_targets
 from ..contacts import (Contacts, bvh_state, collision_spheres, final_passes, hash_state,
                         solved_state, world_box)
-from ..errors import MuscleMSSError
+from ..errors import MuscleMSSError, PoseError
 from ..model import MSSModel, PreparedModel, SolveResult, check_history_size, prepare
+from ..solver import scene_size
 from ..settings import (METHOD_QUASI_STATIC, SPRING_ENERGIES, STRUCTURE_BVH,
                         TERMINATION_BUDGET, TERMINATION_ITERATIONS, SolverSettings)
 from ..solid_contacts import solid_grid, solid_state
@@ -172,14 +173,19 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
                               contact_stiffness(model, prep, pre, settings), bone_solids,
                               tissue_targets(model, prep.order, settings.tissue_along))
-    outcome = _minimise(prep, pre, settings, energy_of, spheres, progress)
+    size = scene_size(model.positions, model.radius, bone_centres, bone_radius, bone_solids)
+    outcome = _minimise(prep, pre, settings, energy_of, spheres, progress, model.names, size)
     x[:, pre.free] = outcome.position.T
     return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, outcome)
 
 
-def _minimise(prep, pre, settings, energy_of, spheres, progress):
+def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
     """The L-BFGS iterations from the positions ``energy_of`` holds, until the tolerance, the
-    cap, the budget or a failed line search (:class:`LoopOutcome`)."""
+    cap, the budget or a failed line search (:class:`LoopOutcome`). Raises
+    :class:`~muscle_mss.core.errors.PoseError` naming the muscle (of ``names``) when the energy
+    at the start is not finite or a particle gets farther from its start than ``size`` mm
+    (:func:`~muscle_mss.core.solver.scene_size`, :func:`_check_reach`): the energy has no
+    minimum near the pose."""
     tolerance = settings.quasi_static.tolerance
     budget = settings.budget
     free_muscle = prep.muscle[pre.free]
@@ -195,6 +201,13 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
     started = time.perf_counter()
     position = np.ascontiguousarray(energy_of.x[:, pre.free].T)
     energy, gradient, volume_gradient = energy_of.evaluate(position)
+    if not np.isfinite(energy):
+        _not_finite(gradient, free_muscle, names)
+    begin = position
+    # an upper bound of the farthest particle move since the start: the sum of the accepted
+    # steps' largest moves; the moves themselves are measured only when the bound passes the
+    # scene's size (rarely; never on the demo motions)
+    travelled = 0.0
     history = LBFGSHistory(int(settings.quasi_static.history), len(pre.free))
     done, converged, stopped_by = 0, False, TERMINATION_ITERATIONS
     accepted = 1.0                  # the last accepted step fraction
@@ -233,6 +246,9 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
             "ij,ij->i", moved, moved)), minlength=n_muscles) / sizes
         position, energy, gradient, volume_gradient = (trial, trial_energy, trial_gradient,
                                                        trial_volume)
+        travelled += accepted * largest
+        if travelled > size:
+            travelled = _check_reach(position, begin, size, free_muscle, names, done)
         record.seconds[done - 1] = time.perf_counter() - started
         if stalled >= STALLED_STEPS:
             stopped_by = TERMINATION_STALLED
@@ -243,6 +259,35 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress):
         if progress is not None and progress(done / cap):
             raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
     return LoopOutcome(record, done, stopped_by, converged, solve_seconds, position)
+
+
+def _check_reach(position, begin, size, free_muscle, names, done) -> float:
+    """The farthest any particle of ``position`` (f, 3) mm has moved from ``begin`` (mm);
+    :class:`~muscle_mss.core.errors.PoseError` naming its muscle when that is more than
+    ``size`` mm (the scene's size) after iteration ``done``."""
+    moved = np.einsum("ij,ij->i", position - begin, position - begin)
+    k = int(np.argmax(moved))
+    farthest = float(np.sqrt(moved[k]))
+    if not farthest <= size:
+        raise PoseError(names[free_muscle[k]], f" diverged in the quasi-static solve: after "
+                        f"iteration {done} a particle of it lay {farthest:.3g} mm from its "
+                        f"posed place, farther than the scene's size ({size:.3g} mm): "
+                        "the model has no equilibrium near this pose; check the motion at "
+                        "this time, the springs' stiffness, BulkModulus, ConnectiveTissue and "
+                        "the bone contact (BoneSphereSpacing)")
+    return farthest
+
+
+def _not_finite(gradient, free_muscle, names):
+    """Raise the :class:`~muscle_mss.core.errors.PoseError` (or, where no particle's force is
+    to blame, the :class:`MuscleMSSError`) of an energy that is not finite at the start."""
+    bad = np.flatnonzero(~np.isfinite(gradient).all(axis=1))
+    text = ("the quasi-static energy of the posed model is not finite: check the motion at "
+            "this time and the springs' rest lengths, stiffness and BulkModulus")
+    if len(bad):
+        raise PoseError(names[free_muscle[bad[0]]], f": {text} (a force on a particle of it "
+                        "is not finite)")
+    raise MuscleMSSError(text)
 
 
 def _step(gradient, history, h0, residual, done, tolerance, at_rounding=False):
