@@ -32,6 +32,13 @@ SAMPLES = 256                   # surface vertices sampled per muscle for the bo
 # (which lie inside it) lie inside another muscle's surface; a muscle placed inside another, or
 # two copies of one muscle, have all of them there.
 MAX_IN_OTHER_MUSCLE = 0.5
+# Accepted, with a warning: more than WARN_INSIDE of a muscle's fibre midpoints (its belly)
+# inside one bone or another muscle at rest. Not the share of its surface: the demo scenes' surfaces
+# lie up to 24.5 % inside a bone (tendons entering it, up to 8.9 mm deep) and up to 24 % inside
+# a neighbour (touching muscles' coarse surfaces, up to 3.2 mm deep), with no fibre midpoint in
+# a bone and at most one of 16 (6 %) in another muscle; a muscle moved until 27 % of its surface
+# lies in the femur has 44 % of its midpoints there, 15 mm deep.
+WARN_INSIDE = 0.1
 
 
 def fibre_problems(muscle: str, fibres, where: str = FIBRES_FILE) -> list:
@@ -199,6 +206,69 @@ def _nested(scene: Scene) -> list:
                     "inside another muscle): is one muscle a copy of the other, or placed "
                     "inside it?")
     return problems
+
+
+def _inside_share(middle, surface_points, triangles):
+    """How many of the fibre midpoints ``middle`` (F, 3) lie inside a closed surface; the
+    winding numbers only of those within its bounding box."""
+    low, high = surface_points.min(axis=0), surface_points.max(axis=0)
+    near = ((middle >= low) & (middle <= high)).all(axis=1)
+    if near.mean() <= WARN_INSIDE:
+        return 0
+    return int((winding_numbers(middle[near], surface_points, triangles) > 0.5).sum())
+
+
+def _surface_inside(points, surface_points, triangles, where):
+    """``(share, depth mm)``: the share of the vertices ``points`` (v, 3) inside a closed
+    surface and the deepest of them (its distance to the surface's triangles)."""
+    from .triangle_distance import unsigned_distance
+    inside = winding_numbers(points, surface_points, triangles) > 0.5
+    if not inside.any():
+        return 0.0, 0.0
+    depth = unsigned_distance(surface_points, triangles, points[inside], where)
+    return float(inside.mean()), float(depth.max())
+
+
+def placement_warnings(scene: Scene) -> list:
+    """Sentences for muscles accepted but implausibly placed at rest: more than
+    :data:`WARN_INSIDE` of a muscle's fibre midpoints inside a bone or another muscle (each pair
+    of muscles named once), with that share, the share of its surface vertices inside and the
+    deepest of them (mm). Run on a scene that passed :func:`placement_problems`."""
+    warnings, named = [], set()
+    for name, fibres in scene.fibres.items():
+        surface = scene.muscles.get(name)
+        if surface is None or not fibres.count:
+            continue
+        middle = fibre_midpoints(fibres.points, fibres.offsets)
+        others = [(BONES_FILE, bone, s) for bone, s in scene.bones.items()]
+        others += [(MUSCLES_FILE, other, s) for other, s in scene.muscles.items()
+                   if other != name and frozenset((name, other)) not in named]
+        for file, other, other_surface in others:
+            count = _inside_share(middle, other_surface.points, other_surface.triangles)
+            if count <= WARN_INSIDE * len(middle):
+                continue
+            share, depth = _surface_inside(surface.points, other_surface.points,
+                                           other_surface.triangles, f"{file} block '{other}'")
+            whose = "its fibre midpoints" if file == BONES_FILE \
+                else f"the fibre midpoints of '{name}'"
+            inside = (f"{100 * count / len(middle):.0f} % of {whose} ({count} of {len(middle)}) "
+                      f"and {100 * share:.0f} % of its surface vertices lie inside")
+            if file == BONES_FILE:
+                warnings.append(
+                    f"{MUSCLES_FILE} block '{name}': {inside} {BONES_FILE} block '{other}' at "
+                    f"rest, up to {depth:.1f} mm deep; a muscle's belly lies outside the bones "
+                    f"(more than {100 * WARN_INSIDE:.0f} % of its fibre midpoints in one is "
+                    "implausible; only its tendons enter them): is the muscle or the bone "
+                    "misplaced?")
+            else:
+                named.add(frozenset((name, other)))
+                warnings.append(
+                    f"{MUSCLES_FILE} blocks '{name}' and '{other}': {inside} the surface of "
+                    f"'{other}' at rest, up to {depth:.1f} mm deep; muscles may touch but not "
+                    f"overlap (more than {100 * WARN_INSIDE:.0f} % of one's fibre midpoints in "
+                    "another is implausible), and their surfaces overlap as much after solving "
+                    "(summary.csv in_other_muscle_vertices): is one of them misplaced?")
+    return warnings
 
 
 def scene_problems(scene: Scene, rows=None) -> list:

@@ -69,6 +69,9 @@ NEW_IN_BONE_VERTICES = "new_in_bone_vertices"  # float64, surface vertices insid
 NEW_IN_BONE_DEPTH_MM = "new_in_bone_depth_mm"  # float64, mm, the deepest of them
 NEW_IN_BONE_VERTICES_AFTER = "new_in_bone_vertices_after_push"  # the same after the push out
 NEW_IN_BONE_DEPTH_AFTER_MM = "new_in_bone_depth_after_push_mm"  # (NaN: no bones connected)
+IN_OTHER_MUSCLE_VERTICES = "in_other_muscle_vertices"  # float64, deformed surface vertices
+#                                                         inside another muscle's surface
+IN_OTHER_MUSCLE_DEPTH_MM = "in_other_muscle_depth_mm"  # float64, mm, the deepest of them
 CAGE_DRIFT = "cage_drift"            # float64, mm per deformed vertex: its distance to its
 #                                      cage now minus at rest (core.cage_drift)
 CAGE_DRIFT_MM = "cage_drift_mm"      # float64, mm, field data: the largest of a surface

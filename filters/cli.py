@@ -42,7 +42,8 @@ def cmd_validate(args) -> int:
         print(f"{args.scene}: {len(problems)} problem{'s' if len(problems) > 1 else ''}")
         return 1
     print(f"ok: {scene_counts(scene)}")
-    for warning in direction_warnings(scene):
+    from muscle_mss.core.validation import placement_warnings
+    for warning in direction_warnings(scene) + placement_warnings(scene):
         print(f"warning: {warning}")
     print(attachment_report(scene))
     return 0
@@ -134,8 +135,9 @@ def summary_table(rows) -> str:
     follow its end-to-end length (:func:`~.study.follow_slope`) and how its rest shape stretched
     with its volume kept would (``kept``), their largest arc / chord (above 1 a fibre bends or
     folds) and bend (that over its rest value: above 1 a fibre bends more than at rest), max
-    sphere overlap, the deepest surface vertex newly in a bone as written (after the MVC Surface
-    Deformer's push out) and before the push, the largest drift of a surface vertex off its cage
+    sphere overlap, the deepest surface vertex newly in a bone (outside it at rest) as written
+    (after the MVC Surface Deformer's push out), the deepest inside another muscle, and the
+    deepest newly in a bone before the push, the largest drift of a surface vertex off its cage
     (mm), the largest share of the connective tissue in the muscle's load (%), mean iterations
     and seconds per time point; then the mean over muscles, and a line for each muscle with
     vertices that left their cage (:mod:`muscle_mss.core.cage_drift`)."""
@@ -145,7 +147,7 @@ def summary_table(rows) -> str:
         by_muscle.setdefault(r[A.MUSCLE], []).append(r)
     header = (f"{'muscle':28s} {'vol err % mean':>14s} {'max':>7s} {'max strain':>10s} "
               f"{'follows':>7s} {'kept':>5s} {'arc/chord':>9s} {'bend':>5s} {'overlap mm':>10s} "
-              f"{'in bone mm':>10s} "
+              f"{'new in bone mm':>14s} {'in muscle mm':>12s} "
               f"{'pushed mm':>10s} {'drift mm':>8s} "
               f"{'tissue %':>8s} {'iters':>6s} {'s/time':>7s}")
     lines = [header, "-" * len(header)]
@@ -160,7 +162,8 @@ def summary_table(rows) -> str:
                      f"{_deepest(rs, A.MAX_ARC_CHORD, 9, 2)} "
                      f"{_deepest(rs, A.MAX_FIBRE_BEND, 5, 2)} "
                      f"{max(float(r[A.SPHERE_OVERLAP_MM]) for r in rs):10.3f} "
-                     f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM)} "
+                     f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_AFTER_MM, 14)} "
+                     f"{_deepest(rs, A.IN_OTHER_MUSCLE_DEPTH_MM, 12)} "
                      f"{_deepest(rs, A.NEW_IN_BONE_DEPTH_MM)} "
                      f"{_deepest(rs, A.CAGE_DRIFT_MM, 8, 2)} "
                      f"{max(float(r[A.TISSUE_SHARE_PCT]) for r in rs):8.1f} "

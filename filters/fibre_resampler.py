@@ -11,7 +11,9 @@ fibres have it), field data ``muscle_name``, the three properties, and ``origin_
 The random placement of a muscle is seeded by ``Seed`` together with the muscle's name, so each
 muscle gets the same particles whatever the order or number of the other blocks.
 
-Fibres digitised in both directions are oriented first, on a copy, from the muscle's origin to
+Polylines that chain end to end (a fibre written in pieces, e.g. as two-point segments) are
+joined into fibres first, with a warning (:mod:`muscle_mss.core.fibre_pieces`). Fibres
+digitised in both directions are then oriented, on a copy, from the muscle's origin to
 its insertion (:mod:`muscle_mss.core.fibre_direction`): by the distances of their ends to the
 named ``origin_bone`` / ``insertion_bone`` of the optional ``Bones`` input (``bones.vtm``, rest
 pose), else with the muscle's mean fibre direction; a warning names the block and how many fibres
@@ -29,6 +31,7 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.fibre_direction import (direction_warning, directions_by_bones,
                                              fibre_directions, reversed_fibres)
+from muscle_mss.core.fibre_pieces import joined_fibres, joined_warning
 from muscle_mss.core.fibres import check_fibres, resample_fibres
 from muscle_mss.core.scene import BONES_FILE, FIBRES_FILE
 from muscle_mss.core.validation import far_point_problem, fibre_midpoints
@@ -49,9 +52,12 @@ def muscle_seed(seed: int, name: str) -> list:
 
 
 def fibre_polylines(block, where: str):
-    """The fibres of one block: ``(points (v, 3) float64 mm, offsets (F + 1,) int64, grid)``.
+    """The fibres of one block: ``(points (v, 3) float64 mm, offsets (F + 1,) int64, grid,
+    warning)``.
 
     ``grid`` is the (F, 2) int32 ``fibre_grid`` of the polylines, or None when absent.
+    Polylines that chain end to end (a fibre written in pieces) are joined into fibres
+    (:mod:`muscle_mss.core.fibre_pieces`) and ``warning`` says so (else None).
     """
     V.require_polydata(block, where, "a fibre block of polylines")
     offsets, connectivity = V.fibre_lines(block, where)
@@ -77,7 +83,9 @@ def fibre_polylines(block, where: str):
     problem = far_point_problem(points[connectivity], where, offsets)
     if problem:
         raise MuscleMSSError(problem)
-    return points[connectivity], offsets, grid
+    points, offsets, grid, pieces = joined_fibres(points[connectivity], offsets, grid, where)
+    return points, offsets, grid, (joined_warning(where, pieces, len(offsets) - 1)
+                                   if pieces else None)
 
 
 def rest_bone_meshes(bones) -> dict | None:
@@ -155,10 +163,11 @@ class FibreResampler(MuscleFilter):
         items = []
         for done, (name, block) in enumerate(blocks):
             where = f"{FIBRES_FILE} block '{name}'"
-            points, offsets, grid = fibre_polylines(block, where)
+            points, offsets, grid, joined = fibre_polylines(block, where)
             points, warning = oriented_polylines(block, points, offsets, bones, where)
-            if warning:
-                vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {warning}\n")
+            for text in (joined, warning):
+                if text:
+                    vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {text}\n")
             particles, fibre_id, fibre_index, fixed = resample_fibres(
                 points, offsets, n, randomise, muscle_seed(seed, name), where)
             out = V.make_polydata(particles, line_offsets=np.arange(0, len(particles) + 1, n),

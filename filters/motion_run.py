@@ -236,7 +236,7 @@ def _count_or_depth(column, value):
     if not np.isfinite(value):
         return ""
     return int(value) if column in (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_VERTICES_AFTER,
-                                    A.CAGE_DRIFT_VERTICES) \
+                                    A.IN_OTHER_MUSCLE_VERTICES, A.CAGE_DRIFT_VERTICES) \
         else float(value)
 
 

@@ -23,7 +23,9 @@ forearm bones), and inside and outside are decided by the exact distance near ea
 Each bone's posed transform is fitted from its rest and posed vertices. Reported per muscle:
 the point array ``new_in_bone_depth`` and the field data ``new_in_bone_vertices`` / ``new_in_bone_depth_mm`` (before the push) and
 ``new_in_bone_vertices_after_push`` / ``new_in_bone_depth_after_push_mm``; a vertex counts as
-inside when deeper than :data:`INSIDE_TOLERANCE`.
+inside when deeper than :data:`INSIDE_TOLERANCE`. Every surface also reports the field data
+``in_other_muscle_vertices`` / ``in_other_muscle_depth_mm``: its vertices (as written) inside
+another muscle's deformed surface, and the deepest (:mod:`muscle_mss.core.muscle_overlap`).
 """
 from __future__ import annotations
 
@@ -42,6 +44,7 @@ from muscle_mss.core.cage import (Cage, fibre_polylines, muscle_cage, polyline_c
 from muscle_mss.core.cage_drift import CAGE_DRIFT_LIMIT, cage_distances, cage_drift
 from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.muscle_overlap import vertices_in_other_muscles
 from muscle_mss.core.mvc import bounded_coordinates, mvc_deform
 from muscle_mss.core.rigid_fit import fitted_rigid_transform
 from muscle_mss.core.surface_normals import point_normals
@@ -303,6 +306,12 @@ class MVCSurfaceDeformer(MuscleFilter):
                 deformed, fields, transforms, np.concatenate([outside[n] for n in names]), push)
         for name, (current, surface_points), report in zip(names, points, reports):
             report.update(_drift_report(bindings[name], current, surface_points))
+        in_other, depth = vertices_in_other_muscles(
+            [(d, bindings[name].triangles) for name, d in zip(names, deformed)],
+            [bindings[name].rest_points for name in names])
+        for report, count, deepest in zip(reports, in_other, depth):
+            report.update({A.IN_OTHER_MUSCLE_VERTICES: int(count),
+                           A.IN_OTHER_MUSCLE_DEPTH_MM: float(deepest)})
         surfaces, fibres = [], []
         for name, (current, _), surface_points, report in zip(names, points, deformed, reports):
             surface, polylines = _muscle_outputs(name, bindings[name], current, surface_points,

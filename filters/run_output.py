@@ -37,7 +37,8 @@ SUMMARY_COLUMNS = (A.TIME, A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT
                    A.MEAN_KEPT_SHAPE_STRAIN,
                    A.MAX_ARC_CHORD, A.MAX_FIBRE_BEND, A.SPHERE_OVERLAP_MM,
                    A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
-                   A.NEW_IN_BONE_DEPTH_AFTER_MM, A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM,
+                   A.NEW_IN_BONE_DEPTH_AFTER_MM, A.IN_OTHER_MUSCLE_VERTICES,
+                   A.IN_OTHER_MUSCLE_DEPTH_MM, A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM,
                    *A.FREE_IN_BONE_FIELDS, A.TISSUE_SHARE_PCT,
                    A.ITERATIONS, A.CONVERGED, A.SECONDS)
 """``mean_end_to_end_strain``: the mean over the muscle's fibres of their end-to-end distance over
@@ -54,9 +55,12 @@ it); ``sphere_overlap_mm``: the deepest overlap of the muscle's collision sphere
 of other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
 (``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed
 surface vertices inside a bone they were outside at rest, before and after the MVC Surface
-Deformer pushes them out; ``cage_drift_*``: how many deformed surface vertices drifted off their
-cage by more than :data:`~muscle_mss.core.cage_drift.CAGE_DRIFT_LIMIT` (the mean value
-coordinates carried them far from the particles around them) and the largest drift, mm;
+Deformer pushes them out; ``in_other_muscle_*``: deformed surface vertices inside another
+muscle's deformed surface and the deepest, mm (what the spheres' overlap does not show: the
+surfaces between them, and an overlap the scene had at rest); ``cage_drift_*``: how many
+deformed surface vertices drifted off their cage by more than
+:data:`~muscle_mss.core.cage_drift.CAGE_DRIFT_LIMIT` (the mean value coordinates carried them
+far from the particles around them) and the largest drift, mm;
 ``free_particle*``: solved particles that are not tendon attachments with their centre inside a
 bone, and the deepest (by the bones' signed distance fields), all of them and those not inside a
 bone at rest (``*new_in_bone*``), as the MSS Collision Solver reports them;

@@ -19,6 +19,7 @@ from vtkmodules.vtkIOXML import (vtkXMLMultiBlockDataReader, vtkXMLMultiBlockDat
 
 from muscle_mss.core.attachments import attachment_problems
 from muscle_mss.core.errors import MuscleMSSError, first_problem
+from muscle_mss.core.fibre_pieces import joined_fibres, joined_warning
 from muscle_mss.core.motion import motion_problems, motion_rows
 from muscle_mss.core.scene import (BONES_FILE, FIBRES_FILE, MOTION_COLUMNS, MOTION_FILE,
                                    MUSCLES_FILE, FibreSet, Scene, Surface)
@@ -267,7 +268,11 @@ def fibres_from_vtk(multiblock, filename=FIBRES_FILE) -> dict:
             first = block.GetNumberOfVerts()
             grid = np.asarray(grid).reshape(len(grid), -1)[first:first + len(offsets) - 1]
             grid = grid.astype(np.int32)
-        out[name] = FibreSet(points[connectivity], offsets, grid,
+        fibre_points, offsets, grid, pieces = joined_fibres(points[connectivity], offsets, grid,
+                                                            where)
+        if pieces:
+            V.warn_once(block, joined_warning(where, pieces, len(offsets) - 1))
+        out[name] = FibreSet(fibre_points, offsets, grid,
                              _attachment_name(block, A.ORIGIN_BONE, where),
                              _attachment_name(block, A.INSERTION_BONE, where))
     return out

@@ -37,7 +37,8 @@ from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, sh
 from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE, FibreSet, Scene, Surface
 from muscle_mss.core.springs import (DELAUNAY_REACH, delaunay_springs, fibre_step,
                                      knn_springs, lattice_springs, rest_lengths)
-from muscle_mss.core.validation import far_point_problem, placement_problems
+from muscle_mss.core.validation import (far_point_problem, placement_problems,
+                                        placement_warnings)
 
 from . import array_names as A
 from . import vtk_arrays as V
@@ -138,12 +139,14 @@ def check_resolution(blocks, layout: str) -> None:
                 f"ParticlesPerFibre (--resolution) to {least} or more")
 
 
-def check_placement(blocks, surfaces: dict, bones) -> None:
+def check_placement(blocks, surfaces: dict, bones) -> list:
     """The plausibility rules of a scene in millimetres
     (:func:`muscle_mss.core.validation.placement_problems`: sizes, distance from the origin,
     fibres inside their muscle, muscles outside the bones at rest) on the filter's inputs, each
     muscle's particles taken as its fibres (in fibre order). The same rules ``muscle-mss
-    validate`` applies, so that ParaView refuses the same scenes."""
+    validate`` applies, so that ParaView refuses the same scenes. Returns the warnings of a
+    scene accepted but implausibly placed (:func:`~muscle_mss.core.validation.placement_warnings`:
+    a muscle's belly in a bone or another muscle)."""
     far = [far_point_problem(V.points_of(block), f"{where} block '{name}'")
            for where, items in ((PARTICLES, blocks), (MUSCLES_FILE, surfaces.items()),
                                 (BONES_FILE, V.blocks(bones, where=BONES_FILE) if bones else ()))
@@ -180,9 +183,11 @@ def check_placement(blocks, surfaces: dict, bones) -> None:
             surface = _checked_surface(block, f"{BONES_FILE} block '{name}'")
             if surface is not None:
                 rest_bones[name] = surface
-    problems = placement_problems(Scene(muscles, fibres, rest_bones))
+    scene = Scene(muscles, fibres, rest_bones)
+    problems = placement_problems(scene)
     if problems:
         raise first_problem(problems)
+    return placement_warnings(scene)
 
 
 class SpringBuilder(MuscleFilter):
@@ -258,7 +263,8 @@ class SpringBuilder(MuscleFilter):
             raise MuscleMSSError("the Particles input has no blocks; it needs one block per "
                                  "muscle")
         surfaces = dict(V.blocks(inputs[1], where=MUSCLES_FILE))
-        check_placement(blocks, surfaces, inputs[2])
+        for warning in check_placement(blocks, surfaces, inputs[2]):
+            vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {warning}\n")
         models = []
         for done, (name, block) in enumerate(blocks):
             models.append(self._muscle_model(name, block, surface_mesh(surfaces, name),

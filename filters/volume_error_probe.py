@@ -22,7 +22,8 @@ MEAN_ROW = "mean"
 IN_BONE_COLUMNS = (A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM, A.NEW_IN_BONE_VERTICES_AFTER,
                    A.NEW_IN_BONE_DEPTH_AFTER_MM)
 """Columns copied from the deformed surfaces' field data (MVC Surface Deformer with bones)."""
-SURFACE_COLUMNS = IN_BONE_COLUMNS + (A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM)
+SURFACE_COLUMNS = IN_BONE_COLUMNS + (A.IN_OTHER_MUSCLE_VERTICES, A.IN_OTHER_MUSCLE_DEPTH_MM,
+                                     A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM)
 """Every column copied from the deformed surfaces' field data (NaN where a surface has none)."""
 
 
@@ -51,7 +52,8 @@ class VolumeErrorProbe(MuscleFilter):
         Port("VolumeTable", "vtkTable",
              "columns muscle, rest_volume, volume (mm^3), volume_error_pct, "
              "new_in_bone_vertices, new_in_bone_depth_mm, new_in_bone_vertices_after_push, "
-             "new_in_bone_depth_after_push_mm, cage_drift_vertices, cage_drift_mm; one row "
+             "new_in_bone_depth_after_push_mm, in_other_muscle_vertices, "
+             "in_other_muscle_depth_mm, cage_drift_vertices, cage_drift_mm; one row "
              "per muscle, then a row 'mean' of the "
              "means of each column"),
     )

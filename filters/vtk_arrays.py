@@ -94,7 +94,7 @@ def triangles_of(polydata, where: str = "") -> np.ndarray:
     if polydata.GetNumberOfStrips() == 0:
         return triangles
     from_strips = strip_triangles(*_cell_array_to_csr(polydata.GetStrips()))
-    _warn_once(polydata.GetStrips(),
+    warn_once(polydata.GetStrips(),
                f"{where}: its {polydata.GetNumberOfStrips()} triangle strips are read as "
                f"{len(from_strips)} triangles (the file is not changed); surfaces are triangle "
                "lists: apply ParaView's Triangulate filter and save the file to silence this")
@@ -118,7 +118,7 @@ def strip_triangles(offsets, connectivity) -> np.ndarray:
 _warned = set()
 
 
-def _warn_once(source, text: str) -> None:
+def warn_once(source, text: str) -> None:
     """Show ``text`` as a VTK warning (ParaView's output messages; stderr in Python) once per
     ``source`` (a VTK object) as modified: every filter reading the block would say it again."""
     key = (source.GetAddressAsString("vtkObject"), source.GetMTime())

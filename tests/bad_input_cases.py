@@ -230,6 +230,45 @@ def muscle_partly_into_femur(share):
     return mutate
 
 
+def muscle_half_in_copy(scene):
+    """The second muscle replaced by a copy of the first (surface and fibres) moved sideways
+    (across the first's fibres, toward the second) until just half of its fibre midpoints lie
+    inside the first and half of the first's inside it: the most the overlap rule accepts."""
+    from muscle_mss.core.validation import fibre_midpoints
+    from muscle_mss.core.volume import winding_numbers
+    first, second = list(scene.muscles)[:2]
+    surface, fibres = scene.muscles[first], scene.fibres[first]
+    along = fibres.points[fibres.offsets[1:] - 1] - fibres.points[fibres.offsets[:-1]]
+    along = along.mean(axis=0) / np.linalg.norm(along.mean(axis=0))
+    side = scene.muscles[second].points.mean(axis=0) - surface.points.mean(axis=0)
+    side -= side.dot(along) * along
+    side /= np.linalg.norm(side)
+    middle = fibre_midpoints(fibres.points, fibres.offsets)
+    for shift in np.arange(0.0, 50.0, 0.1):   # the copy's midpoints in the first, and back
+        moved = np.concatenate([middle + shift * side, middle - shift * side])
+        inside = winding_numbers(moved, surface.points, surface.triangles) > 0.5
+        if max(inside[:len(middle)].mean(), inside[len(middle):].mean()) <= 0.5:
+            break
+    copied_surface, copied_fibres = copy.deepcopy(surface), copy.deepcopy(fibres)
+    copied_surface.points += shift * side
+    copied_fibres.points += shift * side
+    scene.muscles[second], scene.fibres[second] = copied_surface, copied_fibres
+
+
+def fibres_as_segments(scene):
+    """The first muscle's fibres written as two-point segments, one per step of each fibre, in
+    fibre order (each segment with its fibre's ``fibre_grid`` cell), as some exporters write
+    polylines."""
+    name = _first(scene.fibres)
+    fs = scene.fibres[name]
+    steps = np.diff(fs.offsets) - 1
+    segments = [fs.fibre(f)[i:i + 2] for f in range(fs.count) for i in range(steps[f])]
+    grid = None if fs.grid is None else np.repeat(fs.grid, steps, axis=0)
+    scene.fibres[name] = FibreSet.from_polylines(segments, grid)
+    scene.fibres[name].origin_bone = fs.origin_bone
+    scene.fibres[name].insertion_bone = fs.insertion_bone
+
+
 def insertion_onto_origin(muscle="rectus_femoris", index=TIME_INDEX):
     """At time point ``index`` the insertion bone of ``muscle`` translated so that its fibres'
     insertion centroid lands on their origin centroid (both posed): origin and insertion meet."""
@@ -477,6 +516,19 @@ CASES = [
 
 
 HEAD = """# Bad input: what each gets
+    Case("muscle-27pct-in-bone", "a muscle moved until 27 % of its surface lies in the femur, "
+         "under the 30 % rule (ran without a word, 'in bone mm' 0.000, before)",
+         r"Spring Builder: muscles.vtm block 'rectus_femoris': 44 % of its fibre midpoints \(7 "
+         r"of 16\) and 27 % of its surface vertices lie inside bones.vtm block 'femur' at rest, "
+         r"up to 15.\d mm deep; a muscle's belly lies outside the bones",
+         scene=muscle_partly_into_femur(0.27), warns=True),
+    Case("muscle-half-in-muscle", "a copy of a muscle in place of another, half of each one's "
+         "fibre midpoints inside the other (the most the overlap rule accepts; surfaces "
+         "interpenetrating while 'overlap mm' read 0.001, before)",
+         r"Spring Builder: muscles.vtm blocks 'rectus_femoris' and 'vastus_lateralis': 50 % of "
+         r"the fibre midpoints of 'rectus_femoris' \(8 of 16\) and \d+ % of its surface "
+         r"vertices lie inside the surface of 'vastus_lateralis' at rest, up to \d+\.\d mm deep",
+         scene=muscle_half_in_copy, warns=True),
 
 Every bad input below was tried on the small demo scene (`muscle-mss demo-scene OUT --size
 small`), through `muscle-mss run SCENE OUT --time 0.5` and through the bare filter chain (what
@@ -504,6 +556,15 @@ more than 10 mm is reported in `cage_drift_vertices` and by a CLI warning:
 The scene-file cases (missing or cut `.vtp`, empty `motion.csv` cells) are checked when a scene
 folder is read by muscle-mss: `muscle-mss validate/run`, the batch, and the plugin's pipeline
 builder (`muscle_mss.plugin.pipeline.build_pipeline`, which refuses the folder before building).
+    Case("fibres-as-segments", "a muscle's 16 fibres written as 176 two-point segments (read "
+         "as 176 fibres, fibre strain 1.62, before); the run then gives the unmodified scene's "
+         "particles",
+         r"Fibre Resampler: fibres.vtm block 'rectus_femoris': 176 polylines joined end to end "
+         r"into 16 fibres", scene=fibres_as_segments, warns=True),
+    Case("fibres-as-segments-knn", "the same, `--layout k-NN`",
+         r"Fibre Resampler: fibres.vtm block 'rectus_femoris': 176 polylines joined end to end "
+         r"into 16 fibres", scene=fibres_as_segments, options=("--layout", "k-NN"),
+         settings={"Layout": "k-NN"}, warns=True),
 A pipeline assembled by hand from ParaView's own readers gets only what the filters can see: a
 missing `.vtp` shows up as a copy of the previous block and ParaView's CSV reader reads an
 empty cell as 0 — run `muscle-mss validate SCENE` on such a folder. The ParaView time slider

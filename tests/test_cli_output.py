@@ -141,18 +141,22 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
     from muscle_mss.filters.cli import summary_table
     row = {"muscle": "vastus", "volume_error_pct": "1.5", "max_fibre_strain": "0.1",
            "sphere_overlap_mm": "0.01", "new_in_bone_depth_mm": "4.7",
-           "new_in_bone_depth_after_push_mm": "0.0", "cage_drift_mm": "1.25",
+           "new_in_bone_depth_after_push_mm": "0.0", "in_other_muscle_depth_mm": "2.5",
+           "cage_drift_mm": "1.25",
            "cage_drift_vertices": "0", "tissue_share_pct": "12.5", "iterations": "500",
            "seconds": "0.7", "time": "0.5"}
     table = summary_table([row])
     header, _, line = table.splitlines()[:3]
     columns = dict(zip(["muscle", "mean", "max", "strain", "follows", "kept", "arc/chord",
-                        "bend", "overlap", "in bone", "pushed", "drift", "tissue", "iters",
+                        "bend", "overlap", "in bone", "in muscle", "pushed", "drift", "tissue",
+                        "iters",
                         "seconds"],
                        line.split()))
-    assert "in bone mm" in header and "pushed mm" in header
-    assert header.index("in bone mm") < header.index("pushed mm") < header.index("tissue %")
+    assert "new in bone mm" in header and "in muscle mm" in header and "pushed mm" in header
+    assert header.index("new in bone mm") < header.index("in muscle mm") \
+        < header.index("pushed mm") < header.index("tissue %")
     assert columns["in bone"] == "0.000" and columns["pushed"] == "4.700"
+    assert columns["in muscle"] == "2.500"
     assert columns["tissue"] == "12.5" and columns["iters"] == "500"
     assert columns["drift"] == "1.25" and "warning" not in table
     flung = dict(row, cage_drift_mm="13.9", cage_drift_vertices="1")
@@ -160,7 +164,7 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
     assert warning.startswith("warning: vastus: surface vertices left their cage by more than "
                               "10 mm at 1 of 2 time points") and "13.9 mm, at t = 0.5 s" in warning
     no_bones = dict(row, new_in_bone_depth_mm="", new_in_bone_depth_after_push_mm="")
-    assert summary_table([no_bones]).splitlines()[2].split()[9:11] == ["-", "-"]
+    assert summary_table([no_bones]).splitlines()[2].split()[9:12] == ["-", "2.500", "-"]
     assert columns["follows"] == columns["kept"] == columns["arc/chord"] == columns["bend"] \
         == "-"                                                          # not in these rows
 
