@@ -95,6 +95,98 @@ def demo_region_scene(region: str, size: str) -> Scene:
     return demo_scene(size)
 
 
+def demo_region_motion(region: str):
+    """The motion of the demo scene of ``region`` (what :func:`demo_region_scene` holds), without
+    building the scene."""
+    if region == REGION_ARM:
+        from muscle_mss.core.demo_arm import flexion_motion
+        return flexion_motion()
+    from muscle_mss.core.demo_scene import gait_motion
+    return gait_motion()
+
+
+DEMO_SCENE_RECORD = ".muscle-mss-demo-scene"
+"""In the scene folder ``muscle-mss demo`` writes: the SHA-256 and relative path of each file
+it wrote there, a line each, so that a later demo replaces that folder silently only while it
+holds just those files as written (not a scene the user edited or put there)."""
+
+
+def _sha256(path: str) -> str:
+    import hashlib
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _demo_record(folder: str) -> dict:
+    """The files ``folder``'s :data:`DEMO_SCENE_RECORD` lists: relative path -> SHA-256."""
+    try:
+        with open(os.path.join(folder, DEMO_SCENE_RECORD)) as f:
+            return dict(reversed(line.rstrip("\n").split("  ", 1)) for line in f
+                        if "  " in line)
+    except OSError:
+        return {}
+
+
+def demo_scene_changes(folder: str) -> list:
+    """What the scene folder ``folder`` holds that the demo did not write as it is there, a
+    sentence each: a file its record (:data:`DEMO_SCENE_RECORD`) does not list, one changed
+    since, a link; [] for a folder holding only the demo's files as written (or none)."""
+    record, changes = _demo_record(folder), []
+    for root, dirs, files in os.walk(folder):
+        links = sorted(d for d in dirs if os.path.islink(os.path.join(root, d)))
+        for name in sorted(files) + links:
+            path = os.path.join(root, name)
+            relative = os.path.relpath(path, folder).replace(os.sep, "/")
+            if relative == DEMO_SCENE_RECORD:
+                continue
+            if os.path.islink(path):
+                changes.append(f"{relative}: a link the demo did not write")
+            elif relative not in record:
+                changes.append(f"{relative}: not written by the demo" + (
+                    "" if record else f" (no record {DEMO_SCENE_RECORD} of the demo's files)"))
+            elif _sha256(path) != record[relative]:
+                changes.append(f"{relative}: changed since the demo wrote it")
+        dirs.sort()
+    return changes
+
+
+def check_demo_scene(folder: str, overwrite: bool) -> None:
+    """Refuse to write the demo scene into ``folder`` when something there is not a file the demo
+    wrote as it wrote it (:func:`demo_scene_changes`: the user's scene, or the demo's edited)
+    unless ``overwrite`` (then a note says so: the demo's files are written over, others
+    stay), and when ``folder`` is not a folder (never removed)."""
+    if os.path.islink(folder) or (os.path.lexists(folder) and not os.path.isdir(folder)):
+        kind = "a link" if os.path.islink(folder) else "a file"
+        raise MuscleMSSError(f"{folder} is {kind}, where the demo writes its scene folder; "
+                             "move it away or choose another output folder")
+    changes = demo_scene_changes(folder)
+    more = f", and {len(changes) - 1} more" if len(changes) > 1 else ""
+    if changes and overwrite:
+        print(f"note: writing the demo scene over {folder} (--overwrite), which held a scene "
+              f"the demo did not write ({changes[0]}{more})", file=sys.stderr)
+    elif changes:
+        raise MuscleMSSError(f"{folder} holds a scene the demo did not write ({changes[0]}"
+                             f"{more}); the demo would write its scene over it: pass --overwrite "
+                             "to replace it, or choose another output folder")
+
+
+def record_demo_scene(folder: str, files) -> None:
+    """Write ``folder``'s :data:`DEMO_SCENE_RECORD` of ``files`` (paths in it), atomically."""
+    lines = "".join(f"{_sha256(path)}  {os.path.relpath(path, folder).replace(os.sep, '/')}\n"
+                    for path in files)
+    temporary = os.path.join(folder, f"{DEMO_SCENE_RECORD}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "w") as f:
+            f.write(lines)
+        os.replace(temporary, os.path.join(folder, DEMO_SCENE_RECORD))
+    except OSError as err:
+        raise MuscleMSSError(f"cannot write {os.path.join(folder, DEMO_SCENE_RECORD)}: "
+                             f"{err.strerror or err}") from None
+
+
 def write_demo_scene(out: str, size: str, region: str = REGION_THIGH) -> Scene:
     """Write the demo scene folder ``out`` of ``region`` and its ``preview.png``; return the
     scene as read back and checked from the files."""
@@ -273,13 +365,20 @@ def compile_kernels(settings: dict | None = None) -> None:
 
 
 @contextlib.contextmanager
-def held_output_folder(out: str, overwrite: bool, study: bool = False):
+def held_output_folder(out: str, overwrite: bool, study: bool = False, places=(), scene=None,
+                       check=None):
     """:func:`run_output.output_folder` saying what it did: a lock taken over, an earlier run
-    replaced; ``study``: for a study's files (:data:`~.study_report.STUDY_FILES`)."""
+    replaced; ``study``: for a study's files (:data:`~.study_report.STUDY_FILES`); ``places``:
+    what the run places deeper (:func:`run_output.run_places`); ``scene``: the scene folder it
+    reads (its files are never removed); ``check``: called with the folder held, before the
+    folder's check."""
     from .run_output import output_folder
+    from .scene_io import scene_files
     from .study_report import STUDY_FILES
     names = {"names": STUDY_FILES, "folders": ()} if study else {}
-    with output_folder(out, overwrite, **names) as (removed, note):
+    inputs = scene_files(scene) if scene is not None else ()
+    with output_folder(out, overwrite, places=places, inputs=inputs, check=check,
+                       **names) as (removed, note):
         if note:
             print(note, file=sys.stderr)
         if removed:
@@ -288,12 +387,19 @@ def held_output_folder(out: str, overwrite: bool, study: bool = False):
 
 
 def cmd_demo(args) -> int:
+    from .run_output import run_places
+    from .scene_io import scene_files
     writing, settings = writing_from(args), settings_from(args)
     start = wallclock.perf_counter()
-    with held_output_folder(args.out, overwrite=True):  # the demo's own folder: run it again
-        scene_folder = os.path.join(args.out, "scene")
+    scene_folder = os.path.join(args.out, "scene")
+    places = run_places(range(len(demo_region_motion(args.region).times)), writing.series)
+    # the demo's own folder: an earlier demo's run is replaced, its scene only as it wrote it
+    with held_output_folder(args.out, overwrite=True, places=places,
+                            check=lambda: check_demo_scene(scene_folder, args.overwrite)):
         with compiling_meanwhile(settings) as compiling:
             scene = write_demo_scene(scene_folder, args.size, args.region)
+            record_demo_scene(scene_folder, [*scene_files(scene_folder),
+                                             os.path.join(scene_folder, "preview.png")])
             print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> "
                   f"{scene_folder}", flush=True)
             pipeline, _ = prepared_pipeline(scene_folder, settings, compiling)
@@ -302,11 +408,16 @@ def cmd_demo(args) -> int:
 
 
 def cmd_run(args) -> int:
+    from .run_output import run_places
     from .scene_io import load_scene
     writing, settings = writing_from(args), settings_from(args)
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
-    with held_output_folder(args.out, args.overwrite):
+    times = list(scene.motion.times)
+    indices = (range(len(times)) if args.time is None
+               else [time_point_index(times, args.time)])
+    with held_output_folder(args.out, args.overwrite, places=run_places(indices, writing.series),
+                            scene=args.scene):
         if args.time is None:
             start = wallclock.perf_counter()
             with compiling_meanwhile(settings) as compiling:
@@ -335,7 +446,7 @@ def cmd_study(args) -> int:
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
     compile_kernels()
-    with held_output_folder(args.out, args.overwrite, study=True):
+    with held_output_folder(args.out, args.overwrite, study=True, scene=args.scene):
         path = study_into(args.scene, args.out, args.resolution, args.time)
     print(f"wrote {path} (figures as PNG, their numbers as CSV beside it)")
     return 0
@@ -401,6 +512,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", nargs="?", default="demo_out", help="output folder (default demo_out)")
     p.add_argument("--size", choices=DEMO_SIZES, default=DEMO_SIZES[0])
     _add_region_option(p)
+    p.add_argument("--overwrite", action="store_true",
+                   help="write the demo scene over an OUT/scene the demo did not write (one you "
+                        "edited; refused without it). An earlier demo's run and scene are "
+                        "replaced without it")
     add_run_options(p)
     p.set_defaults(func=cmd_demo)
 

@@ -16,6 +16,11 @@
   the folders that this left empty. A name a run writes that is taken by something the manifest
   does not list (a user's folder called ``summary.csv``, results of a version before manifests)
   is refused with or without ``--overwrite``: the user moves it, muscle-mss never deletes it.
+  So is one deep in ``series/`` where the run will place a file or a time point's folder, and
+  a file where it needs a folder: every place a run writes is checked before it solves.
+* **Inputs.** A manifest line naming a file the run reads (its scene's, e.g. a manifest edited
+  by hand in the scene folder) is refused with or without ``--overwrite``: a run never removes
+  its input.
 """
 from __future__ import annotations
 
@@ -174,18 +179,102 @@ def output_lock(out: str):
         os.close(fd)
 
 
-def prepare(out: str, overwrite: bool, names, folders) -> list:
+def _left(out: str, relative: str, listed) -> bool:
+    """Whether ``relative`` (under ``out``) would still be there after :func:`remove_listed`:
+    anything but a listed plain file, and a folder unless everything in it goes."""
+    path = os.path.join(out, relative)
+    if not os.path.lexists(path):
+        return False
+    if _is_plain_file(path):
+        return relative not in listed or _inside(out, relative) is None
+    if os.path.islink(path) or not os.path.isdir(path):
+        return True
+    entries = os.listdir(path)
+    return not entries or any(_left(out, f"{relative}/{e}", listed) for e in entries)
+
+
+def _obstacles(out: str, places, skip) -> list:
+    """What stands where a run places ``places`` (``(relative path, is_folder)``: files, and the
+    folders it moves into place whole) after :func:`remove_listed`, each with what it is: a
+    thing no manifest lists on such a path, or anything but a folder on a folder above one.
+    Paths in ``skip`` are left out (:func:`_taken` names them)."""
+    listed = set(listed_files(out))
+    found, above = [], {}
+    for relative, is_folder in places:
+        relative = relative.replace(os.sep, "/")
+        parts = relative.split("/")
+        for k in range(1, len(parts)):
+            above.setdefault("/".join(parts[:k]), relative)
+        if relative in skip or not _left(out, relative, listed):
+            continue
+        path = os.path.join(out, relative)
+        if os.path.islink(path):
+            kind = "a link"
+        elif os.path.isdir(path):
+            kind = ("a folder holding what no manifest lists, where the run writes its own"
+                    if is_folder else "a folder where the run writes a file")
+        else:
+            kind = ("a file where the run writes a folder" if is_folder
+                    else "a file no manifest lists")
+        found.append(f"{relative} ({kind})")
+    for relative in above:
+        path = os.path.join(out, relative)
+        if relative not in skip and os.path.lexists(path) and (
+                os.path.islink(path) or not os.path.isdir(path)) and _left(out, relative, listed):
+            found.append(f"{relative} (a {'link' if os.path.islink(path) else 'file'} where the "
+                         f"run writes a folder, for {above[relative]})")
+    return found
+
+
+def _unwritable(out: str, places) -> list:
+    """The folders under ``out`` that hold places of ``places`` and exist but cannot be
+    written in."""
+    folders = dict.fromkeys(os.path.dirname(p.replace(os.sep, "/")) for p, _ in places)
+    return [f for f in folders if f and os.path.isdir(os.path.join(out, f))
+            and not os.access(os.path.join(out, f), os.W_OK | os.X_OK)]
+
+
+def _listed_inputs(out: str, inputs) -> list:
+    """``(relative, input)``: the manifest's paths that are (resolved) one of ``inputs``."""
+    real = {os.path.realpath(p): p for p in inputs}
+    found = []
+    for relative in listed_files(out):
+        path = _inside(out, relative)
+        if path is not None and os.path.realpath(path) in real:
+            found.append((relative, real[os.path.realpath(path)]))
+    return found
+
+
+def prepare(out: str, overwrite: bool, names, folders, places=(), inputs=()) -> list:
     """Check ``out`` (held by :func:`output_lock`) before a run that writes ``names`` there
-    (``folders`` among them are folders): created if missing, writable, no name taken by
-    something its manifest does not list, and no previous run's files unless ``overwrite``,
-    which removes them (:func:`remove_listed`). Returns the relative paths removed."""
+    (``folders`` among them are folders) and places ``places`` (``(relative path, is_folder)``,
+    every file and moved folder it will write, :func:`run_output.run_places`), reading
+    ``inputs`` (its scene's files): created if missing, writable, no manifest line naming an
+    input (a run never removes what it reads), no name or place taken by something its
+    manifest does not list, no folder on the way that cannot be written in, and no previous
+    run's files unless ``overwrite``, which removes them (:func:`remove_listed`). Everything
+    is checked before anything is removed. Returns the relative paths removed."""
+    clash = _listed_inputs(out, inputs)
+    if clash:
+        (relative, path), more = clash[0], len(clash) - 1
+        raise MuscleMSSError(
+            f"output folder {out}: its manifest {MANIFEST_FILE} lists {relative}, which is "
+            f"{path}, an input of this run{f' (and {more} more inputs)' if more else ''}; a run "
+            "never removes a file it reads, whatever the manifest says: remove those lines "
+            "from the manifest or choose another output folder")
     taken = _taken(out, names, folders)
+    taken += _obstacles(out, places, skip=set(names))
     if taken:
         raise MuscleMSSError(
             f"output folder {out} holds {', '.join(taken)}, which the run would write but "
             f"muscle-mss did not write (its manifest {MANIFEST_FILE} does not list it: your "
             "own, or results of a version before manifests); muscle-mss never removes what it "
             "did not write: move it away or choose another folder")
+    unwritable = _unwritable(out, places)
+    if unwritable:
+        raise MuscleMSSError(f"output folder {out}: the run writes into {unwritable[0]}, which "
+                             "cannot be written (no write permission); make it writable or "
+                             "choose another folder")
     previous = [p for p in listed_files(out) if os.path.lexists(os.path.join(out, p))]
     if previous and not overwrite:
         shown = dict.fromkeys(p.split("/")[0] for p in previous)

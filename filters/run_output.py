@@ -103,6 +103,27 @@ def series_file(name: str, index: int) -> str:
     return os.path.join(SERIES_FOLDER, f"{name}_{index:04d}.vtm")
 
 
+def series_blocks_folder(name: str, index: int) -> str:
+    """Relative path of the folder of one time point's ``.vtp`` files of a series (VTK's
+    writer names it after the ``.vtm``), moved into place whole."""
+    return os.path.splitext(series_file(name, index))[0]
+
+
+def time_point_places(index: int, series_names=SERIES) -> list:
+    """``(relative path, is_folder)`` of what :func:`write_time_point` places for time point
+    ``index``: each series' ``.vtm`` and its folder of blocks, and the convergence table."""
+    places = []
+    for name in series_names:
+        places += [(series_file(name, index), False), (series_blocks_folder(name, index), True)]
+    return places + [(convergence_file(index), False)]
+
+
+def run_places(indices, series_names=SERIES) -> list:
+    """:func:`time_point_places` of every time point of ``indices``: what a run writing them
+    places below ``series/`` and ``convergence/``, checked before it solves."""
+    return [place for index in indices for place in time_point_places(index, series_names)]
+
+
 def index_file(name: str) -> str:
     """The ``.pvd`` index of a series: its time points' files and times."""
     return f"{name}.pvd"
@@ -115,13 +136,16 @@ def convergence_file(index: int) -> str:
 
 @contextlib.contextmanager
 def output_folder(out: str, overwrite: bool = False, names=RUN_FILES,
-                  folders=(SERIES_FOLDER, CONVERGENCE_FOLDER)):
+                  folders=(SERIES_FOLDER, CONVERGENCE_FOLDER), places=(), inputs=(), check=None):
     """Hold ``out`` for a run (its lock, :mod:`~muscle_mss.filters.output_folder`) for the
     ``with`` block, after checking it before solving: created if missing, writable, no name of
     ``names`` (the run's files and ``folders``; default a motion run's, :data:`RUN_FILES`)
-    taken by a file or folder the run did not write, and no previous run's
-    results, which ``overwrite`` removes (the files its manifest lists, so that no file of the
-    earlier run, e.g. a time point it had in addition, stays beside the new ones). Yields
+    taken by a file or folder the run did not write, nor any of ``places`` (the files and
+    folders it places deeper, :func:`run_places`), no manifest line naming one of ``inputs``
+    (the files the run reads; ``check``, called first with the lock held, checks more), and no
+    previous run's results, which ``overwrite`` removes (the files its manifest lists, so that
+    no file of the earlier run, e.g. a time point it had in addition, stays beside the new
+    ones). Yields
     ``(removed, note)``: the relative paths removed and the note of a lock taken over (or
     None). Raises :class:`MuscleMSSError` naming the folder and the cause."""
     if os.path.exists(out) and not os.path.isdir(out):
@@ -132,7 +156,9 @@ def output_folder(out: str, overwrite: bool = False, names=RUN_FILES,
         raise MuscleMSSError(f"output folder {out} cannot be written: "
                              f"{err.strerror or err}") from None
     with folder.output_lock(out) as note:
-        yield folder.prepare(out, overwrite, names, folders), note
+        if check is not None:
+            check()
+        yield folder.prepare(out, overwrite, names, folders, places, inputs), note
 
 
 def write_time_point(result, out: str, series_names=SERIES,
@@ -176,7 +202,8 @@ def write_time_point(result, out: str, series_names=SERIES,
             final = series_file(name, result.index)
             named = _check_written(staged, os.path.join(out, final), succeeded)
             folder.claim(out, final, *(os.path.join(os.path.dirname(final), n) for n in named))
-            _move_into_place(staged, os.path.join(out, final))
+            _move_into_place(staged, os.path.join(out, final),
+                             os.path.join(out, series_blocks_folder(name, result.index)))
     except OSError as err:
         raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
     finally:
@@ -225,13 +252,15 @@ def _check_written(vtm: str, final: str, writer_ok: bool) -> list:
     return named
 
 
-def _move_into_place(staged_vtm: str, final_vtm: str) -> None:
-    """Rename a staged ``.vtm`` and its folder of ``.vtp`` files into place; the ``.vtm`` last,
+def _move_into_place(staged_vtm: str, final_vtm: str, final_dir: str) -> None:
+    """Rename a staged ``.vtm`` and its folder of ``.vtp`` files into place (``final_vtm``,
+    ``final_dir``: :func:`series_blocks_folder`); the ``.vtm`` last,
     so that it never names files that are not there. A folder in the way is not ours (the
     output folder's check removed the previous run's files): refused, never removed."""
-    staged_dir, final_dir = os.path.splitext(staged_vtm)[0], os.path.splitext(final_vtm)[0]
+    staged_dir = os.path.splitext(staged_vtm)[0]
     for path in (final_dir, final_vtm):
-        if os.path.lexists(path) and (os.path.isdir(path) or os.path.islink(path)):
+        if os.path.lexists(path) and (path == final_dir or os.path.isdir(path)
+                                      or os.path.islink(path)):
             raise MuscleMSSError(f"cannot write {final_vtm}: {path} is in the way and muscle-mss "
                                  f"did not write it; move it away")
     if os.path.isdir(staged_dir):

@@ -90,6 +90,20 @@ def write_scene(scene: Scene, folder) -> None:
             out.writerow([repr(float(t)), b] + [repr(float(v)) for v in row])
 
 
+def scene_files(folder) -> list:
+    """The files a run reads from the scene folder ``folder`` that are there: its three
+    ``.vtm`` files, each one's block files (as listed in it) and the motion table."""
+    files = []
+    for filename in (MUSCLES_FILE, FIBRES_FILE, BONES_FILE):
+        path = os.path.join(folder, filename)
+        if os.path.isfile(path):
+            files.append(path)
+            with contextlib.suppress(MuscleMSSError):
+                files += [os.path.join(folder, block) for _, block in _blocks_listed(path)]
+    motion = os.path.join(folder, MOTION_FILE)
+    return files + ([motion] if os.path.isfile(motion) else [])
+
+
 def _require(folder, filename):
     path = os.path.join(folder, filename)
     if not os.path.isfile(path):

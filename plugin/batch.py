@@ -105,13 +105,19 @@ def main(argv=None) -> int:
     except MuscleMSSError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    # Rank 0 checks OUT (and removes an earlier run's files with --overwrite) before any rank
+    # Rank 0 checks OUT (every place the ranks will write, and that its manifest names none of
+    # the scene's files) and removes an earlier run's files with --overwrite before any rank
     # writes, and alone holds OUT's lock until every rank is done (every rank adds its files
     # to the manifest); all ranks stop if it refuses.
     with contextlib.ExitStack() as held:
         if rank == 0:
             try:
-                _, note = held.enter_context(run_output.output_folder(args.out, args.overwrite))
+                from muscle_mss.filters.scene_io import load_scene, scene_files
+                count = len(load_scene(args.scene).motion.times)
+                _, note = held.enter_context(run_output.output_folder(
+                    args.out, args.overwrite,
+                    places=run_output.run_places(range(count), writing.series),
+                    inputs=scene_files(args.scene)))
                 if note:
                     print(note, file=sys.stderr)
             except MuscleMSSError as err:
