@@ -466,7 +466,8 @@ def study_into(scene_folder: str, out: str, resolution=None, time=None) -> str:
     def progress(label, done, total):
         bars.setdefault(label, ProgressBar(total, label)).update(done)
 
-    study = run_study(scene_folder, resolution or DEFAULT_PARTICLES_PER_FIBRE, index, progress)
+    study = run_study(scene_folder, resolution or DEFAULT_PARTICLES_PER_FIBRE, index, progress,
+                      asked_time=time)
     return write_report(study, out)
 
 

@@ -123,7 +123,9 @@ class MotionSeries:
 @dataclass
 class Study:
     """A scene's study: its pose (``index``, ``time``), the particles per fibre, one
-    :class:`LayoutResult` per layout, the :class:`MotionSeries`, the machine and seconds."""
+    :class:`LayoutResult` per layout, the :class:`MotionSeries`, the machine and seconds; the
+    time asked for the pose (``--time``, None: the most flexed was studied) and the most flexed
+    pose's index."""
 
     scene: str
     index: int
@@ -133,6 +135,8 @@ class Study:
     motion: MotionSeries
     machine: str
     seconds: float
+    asked_time: float | None = None
+    flexed_index: int | None = None
 
 
 def fibre_statistics(block, limit: float = BEND_LIMIT):
@@ -309,15 +313,17 @@ def motion_series(scene_folder, resolution: int, progress=None) -> MotionSeries:
 
 
 def run_study(scene_folder, resolution: int, index: int | None = None,
-              progress=None) -> Study:
+              progress=None, asked_time: float | None = None) -> Study:
     """The whole study of the scene in ``scene_folder`` at ``resolution`` particles per fibre,
-    its layouts at time point ``index`` (default the most flexed: the bones farthest from rest).
+    its layouts at time point ``index`` (default the most flexed: the bones farthest from rest),
+    the one nearest ``asked_time`` when that was asked (the report says so).
     ``progress(label, done, total)`` after each step."""
     from muscle_mss.core.motion import farthest_pose_index
     from .scene_io import load_scene
     start = wallclock.perf_counter()
     scene = load_scene(scene_folder)
-    index = farthest_pose_index(scene.motion) if index is None else index
+    flexed = farthest_pose_index(scene.motion)
+    index = flexed if index is None else index
     say = progress or (lambda label, done, total: None)
     series = motion_series(scene_folder, resolution,
                            lambda done, total: say("motion", done, total))
@@ -326,4 +332,4 @@ def run_study(scene_folder, resolution: int, index: int | None = None,
         layouts.append(layout_result(scene_folder, layout, resolution, index))
         say("layouts", k + 1, len(LAYOUTS))
     return Study(str(scene_folder), index, float(series.times[index]), resolution, layouts,
-                 series, machine(), wallclock.perf_counter() - start)
+                 series, machine(), wallclock.perf_counter() - start, asked_time, flexed)

@@ -326,11 +326,25 @@ STYLE = ("body{font-family:sans-serif;max-width:1250px;margin:2em auto;color:#22
          "figcaption{font-size:85%;color:#555}")
 
 
+def pose_text(study: Study) -> str:
+    """Which pose the layouts solve, as the report says it: the most flexed (the bones rotated
+    farthest from rest), or the time point nearest the ``--time`` asked, beside the most
+    flexed when that is another."""
+    at = f"time point {study.index} (t = {study.time:g} s)"
+    flexed = ", where the bones are rotated farthest from rest"
+    if study.asked_time is None:
+        return at + flexed
+    asked = f"{at}, the nearest to the t = {study.asked_time:g} s asked with --time"
+    if study.flexed_index is None or study.flexed_index == study.index:
+        return asked + flexed
+    return (f"{asked} (the most flexed pose, where the bones are rotated farthest from rest, is "
+            f"t = {study.motion.times[study.flexed_index]:g} s)")
+
+
 def report_html(study: Study, out: str) -> str:
     """The report's text: every section with its embedded figures and tables."""
     series = study.motion
     volume = series.volume_error
-    flexed = f"time point {study.index} (t = {study.time:g} s)"
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>muscle-mss study</title>"
         f"<style>{STYLE}</style></head><body>",
@@ -339,7 +353,7 @@ def report_html(study: Study, out: str) -> str:
         f"{study.resolution} particles per fibre. Machine: {html.escape(study.machine)}. "
         f"The study took {study.seconds:.0f} s.</p>",
         "<h2>1. Spring layouts (the paper's Fig. 5 and 6)</h2>",
-        f"<p>Each layout solves {flexed}, where the bones are rotated farthest from rest, "
+        f"<p>Each layout solves {pose_text(study)}, "
         "by the paper relaxation (its default iterations, the paper's model: no connective "
         "tissue, no fibre shortening) and by the quasi-static method (the solver's defaults, "
         f"at most {LAYOUT_QUASI_STATIC_CAP} iterations). "

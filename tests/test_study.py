@@ -30,6 +30,8 @@ def test_the_study_writes_its_report_figures_and_tables(study_out, small_scene):
         assert (study_out / name).stat().st_size > 0, name
     text = (study_out / "report.html").read_text()
     assert text.count("data:image/png;base64,") == len(FIGURES)   # opens on its own
+    assert "Each layout solves time point 15 (t = 0.75 s), where the bones are rotated " \
+           "farthest from rest, by the paper relaxation" in text and "--time" not in text
     assert "http://" not in text and "https://" not in text
     named = re.findall(r"numbers in ([\w.]+\.csv)", text)      # every caption's CSV is there
     assert len(named) == len(FIGURES) and all((study_out / n).is_file() for n in named)
@@ -143,3 +145,38 @@ def test_study_options_are_checked(small_scene_dir, tmp_path, capsys):
     assert batch(["--study", str(small_scene_dir), str(tmp_path / "c"), "--method",
                   "quasi-static"]) == 1
     assert "--method do not apply to --study" in capsys.readouterr().err
+
+
+def test_the_report_names_the_pose_asked_with_time(small_scene_dir, tmp_path, monkeypatch):
+    """``--time 0.5``: the report said t = 0.5 s was "where the bones are rotated farthest from
+    rest"; the small demo's most flexed pose is t = 0.75 s."""
+    from muscle_mss.filters import study, study_report
+    from muscle_mss.filters.cli import main
+    asked = {}
+
+    def run_study(scene_folder, resolution, index=None, progress=None, asked_time=None):
+        asked.update(index=index, asked_time=asked_time)
+        times = np.linspace(0.0, 1.0, 21)
+        return study.Study(str(scene_folder), index, float(times[index]), resolution, [],
+                           dataclasses.replace(_no_motion(), times=times), "", 0.0, asked_time,
+                           15)
+    monkeypatch.setattr(study, "run_study", run_study)
+    monkeypatch.setattr(study_report, "write_report",
+                        lambda result, out: asked.update(text=study_report.pose_text(result)))
+    for time, text in (("0.5", "time point 10 (t = 0.5 s), the nearest to the t = 0.5 s asked "
+                                "with --time (the most flexed pose, where the bones are rotated "
+                                "farthest from rest, is t = 0.75 s)"),
+                       ("0.76", "time point 15 (t = 0.75 s), the nearest to the t = 0.76 s "
+                                "asked with --time, where the bones are rotated farthest from "
+                                "rest")):
+        assert main(["study", str(small_scene_dir), str(tmp_path / time), "--time", time]) == 0
+        assert asked["asked_time"] == float(time) and asked["text"] == text
+    assert main(["study", str(small_scene_dir), str(tmp_path / "flexed")]) == 0
+    assert asked["asked_time"] is None and asked["text"] == (
+        "time point 15 (t = 0.75 s), where the bones are rotated farthest from rest")
+
+
+def _no_motion():
+    from muscle_mss.filters.study import MotionSeries
+    fields = {f.name: None for f in dataclasses.fields(MotionSeries)}
+    return MotionSeries(**fields)
