@@ -458,6 +458,19 @@ CASES = [
          r"bones.vtm block 'femur' at rest; a muscle must lie outside the bones in the rest pose "
          r"\(at most 30 %",
          scene=muscle_partly_into_femur(0.4)),
+    Case("muscle-27pct-in-bone", "a muscle moved until 27 % of its surface lies in the femur, "
+         "under the 30 % rule (ran without a word, 'in bone mm' 0.000, before)",
+         r"Spring Builder: muscles.vtm block 'rectus_femoris': 44 % of its fibre midpoints \(7 "
+         r"of 16\) and 27 % of its surface vertices lie inside bones.vtm block 'femur' at rest, "
+         r"up to 15.\d mm deep; a muscle's belly lies outside the bones",
+         scene=muscle_partly_into_femur(0.27), warns=True),
+    Case("muscle-half-in-muscle", "a copy of a muscle in place of another, half of each one's "
+         "fibre midpoints inside the other (the most the overlap rule accepts; surfaces "
+         "interpenetrating while 'overlap mm' read 0.001, before)",
+         r"Spring Builder: muscles.vtm blocks 'rectus_femoris' and 'vastus_lateralis': 50 % of "
+         r"the fibre midpoints of 'rectus_femoris' \(8 of 16\) and \d+ % of its surface "
+         r"vertices lie inside the surface of 'vastus_lateralis' at rest, up to \d+\.\d mm deep",
+         scene=muscle_half_in_copy, warns=True),
     # --time (issue 16 item 6)
     Case("time-after-end", "`--time 5` (the motion ends at 1 s)",
          r"--time 5 is outside the motion's time range \[0, 1\] s", options=("--time", "5"),
@@ -485,6 +498,15 @@ CASES = [
          r"fibres.vtm block 'rectus_femoris': holds \d+ vertex or poly-vertex cells "
          r"\(VTK_VERTEX, VTK_POLY_VERTEX\); fibres must be polylines \(VTK_POLY_LINE\)",
          files=fibres_as_poly_vertices("fibres/fibres_0.vtp")),
+    Case("fibres-as-segments", "a muscle's 16 fibres written as 176 two-point segments (read "
+         "as 176 fibres, fibre strain 1.62, before); the run then gives the unmodified scene's "
+         "particles",
+         r"Fibre Resampler: fibres.vtm block 'rectus_femoris': 176 polylines joined end to end "
+         r"into 16 fibres", scene=fibres_as_segments, warns=True),
+    Case("fibres-as-segments-knn", "the same, `--layout k-NN`",
+         r"Fibre Resampler: fibres.vtm block 'rectus_femoris': 176 polylines joined end to end "
+         r"into 16 fibres", scene=fibres_as_segments, options=("--layout", "k-NN"),
+         settings={"Layout": "k-NN"}, warns=True),
     Case("tolerance-with-paper", "`--method paper --tolerance 0.01` (ignored silently, before)",
          r"--tolerance 0.01 applies only to --method quasi-static .*drop --tolerance or add "
          r"--method quasi-static", options=("--method", "paper", "--tolerance", "0.01"),
@@ -516,19 +538,6 @@ CASES = [
 
 
 HEAD = """# Bad input: what each gets
-    Case("muscle-27pct-in-bone", "a muscle moved until 27 % of its surface lies in the femur, "
-         "under the 30 % rule (ran without a word, 'in bone mm' 0.000, before)",
-         r"Spring Builder: muscles.vtm block 'rectus_femoris': 44 % of its fibre midpoints \(7 "
-         r"of 16\) and 27 % of its surface vertices lie inside bones.vtm block 'femur' at rest, "
-         r"up to 15.\d mm deep; a muscle's belly lies outside the bones",
-         scene=muscle_partly_into_femur(0.27), warns=True),
-    Case("muscle-half-in-muscle", "a copy of a muscle in place of another, half of each one's "
-         "fibre midpoints inside the other (the most the overlap rule accepts; surfaces "
-         "interpenetrating while 'overlap mm' read 0.001, before)",
-         r"Spring Builder: muscles.vtm blocks 'rectus_femoris' and 'vastus_lateralis': 50 % of "
-         r"the fibre midpoints of 'rectus_femoris' \(8 of 16\) and \d+ % of its surface "
-         r"vertices lie inside the surface of 'vastus_lateralis' at rest, up to \d+\.\d mm deep",
-         scene=muscle_half_in_copy, warns=True),
 
 Every bad input below was tried on the small demo scene (`muscle-mss demo-scene OUT --size
 small`), through `muscle-mss run SCENE OUT --time 0.5` and through the bare filter chain (what
@@ -556,15 +565,6 @@ more than 10 mm is reported in `cage_drift_vertices` and by a CLI warning:
 The scene-file cases (missing or cut `.vtp`, empty `motion.csv` cells) are checked when a scene
 folder is read by muscle-mss: `muscle-mss validate/run`, the batch, and the plugin's pipeline
 builder (`muscle_mss.plugin.pipeline.build_pipeline`, which refuses the folder before building).
-    Case("fibres-as-segments", "a muscle's 16 fibres written as 176 two-point segments (read "
-         "as 176 fibres, fibre strain 1.62, before); the run then gives the unmodified scene's "
-         "particles",
-         r"Fibre Resampler: fibres.vtm block 'rectus_femoris': 176 polylines joined end to end "
-         r"into 16 fibres", scene=fibres_as_segments, warns=True),
-    Case("fibres-as-segments-knn", "the same, `--layout k-NN`",
-         r"Fibre Resampler: fibres.vtm block 'rectus_femoris': 176 polylines joined end to end "
-         r"into 16 fibres", scene=fibres_as_segments, options=("--layout", "k-NN"),
-         settings={"Layout": "k-NN"}, warns=True),
 A pipeline assembled by hand from ParaView's own readers gets only what the filters can see: a
 missing `.vtp` shows up as a copy of the previous block and ParaView's CSV reader reads an
 empty cell as 0 — run `muscle-mss validate SCENE` on such a folder. The ParaView time slider
