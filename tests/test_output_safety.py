@@ -320,7 +320,7 @@ def _demo(out, *options):
 
 def test_demo_replaces_its_own_scene_and_refuses_an_edited_one(tmp_path, capsys,
                                                                demo_unsolved):
-    from muscle_mss.filters.cli import DEMO_SCENE_RECORD
+    from muscle_mss.filters.demo_folder import DEMO_SCENE_RECORD
     scene = tmp_path / "scene"
     assert _demo(tmp_path) == 0
     written = B.folder_digest(scene)
@@ -347,7 +347,7 @@ def test_demo_replaces_its_own_scene_and_refuses_an_edited_one(tmp_path, capsys,
 def test_demo_refuses_a_scene_it_did_not_write(small_scene_dir, tmp_path, capsys,
                                                demo_unsolved):
     """A user's own scene in OUT/scene (no record of the demo's files), and a file there."""
-    from muscle_mss.filters.cli import DEMO_SCENE_RECORD
+    from muscle_mss.filters.demo_folder import DEMO_SCENE_RECORD
     shutil.copytree(small_scene_dir, tmp_path / "scene")
     digest = B.folder_digest(tmp_path)
     assert _demo(tmp_path) == 2
