@@ -558,9 +558,18 @@ warning naming the block; the file is not changed). These, and what a run may do
 folder, are tested in `tests/test_input_messages.py` and `tests/test_output_safety.py`. Also
 right: a muscle surface as dense as a segmented one (221,184 triangles; it deforms within
 0.45 mm mean of its coarse surface at the most flexed pose, and a vertex that leaves its cage by
-more than 10 mm is reported in `cage_drift_vertices` and by a CLI warning:
-`tests/test_dense_surface.py`), and bones thinner than their distance fields can resolve
-(what is inside a bone is decided by its triangles: `tests/test_thin_bones.py`).
+more than 10 mm is reported in `cage_drift_vertices` and by a CLI warning; at
+ParticlesPerFibre 8, where the lattice cage folds over itself, the surface's weights are bounded
+and it still follows: `tests/test_dense_surface.py`), and bones thinner than their distance
+fields can resolve (what is inside a bone is decided by its triangles: `tests/test_thin_bones.py`).
+
+What a run may write, tested in `tests/test_output_safety.py`: anything of the user's where the
+run writes (a file at `OUT/series/surfaces_0010`, a folder where a file goes) is refused before
+solving, naming it, with or without `--overwrite`; a manifest that lists a file the run reads is
+refused (`--overwrite` never removes an input); `muscle-mss demo OUT` refuses an `OUT/scene` it
+did not write as it is (a scene you edited) unless `--overwrite`. A state file loaded without
+its scene (or with a `data_directory` that lacks it) names the missing file in ParaView's
+messages, and `muscle_mss.plugin.pipeline.load_state` raises with it (`tests/test_paraview.py`).
 
 The scene-file cases (missing or cut `.vtp`, empty `motion.csv` cells) are checked when a scene
 folder is read by muscle-mss: `muscle-mss validate/run`, the batch, and the plugin's pipeline
