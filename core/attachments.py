@@ -1,4 +1,4 @@
-"""Which bone each end of a muscle is attached to (DESIGN §6 "Attachments", issue 12).
+"""Which bone each end of a muscle is attached to (DESIGN §6 "Attachments").
 
 A muscle's fibres run from its origin to its insertion; the fixed particles at the fibres' ends
 are the tendon attachments and follow their bone rigidly, not a blend of nearby bones. A scene

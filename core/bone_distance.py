@@ -1,4 +1,4 @@
-"""Signed distance to each bone: bones as solids, not shells of spheres (issues 12 and 14).
+"""Signed distance to each bone: bones as solids, not shells of spheres.
 
 The paper's §3.3 turns bones into sets of spheres on their surface; a point carried past that
 shell is inside the bone with nothing to tell it which way is out. Here every bone gets a signed
@@ -26,7 +26,7 @@ steps ``x += (radius - d) grad d``: one step for an exact distance, a few for th
 interpolated one). The module stands apart from the solver; ``muscle_mss.filters`` uses it to keep
 deformed muscle surfaces out of bones.
 
-For a solver (issue 14): build the set once per rest bones
+For a solver: build the set once per rest bones
 (:func:`~muscle_mss.core.bone_field_sampling.bone_field_set`, or the MVC
 Surface Deformer's cached ``bone_fields``), and per pose call ``push_out_of_bones(fields,
 centres, radii, transforms, active=~fixed)`` with the bones' (b, 3, 4) rest-to-posed

@@ -1,4 +1,4 @@
-"""Sampling each bone's signed distance field in its rest frame (issues 12 and 14); the fields
+"""Sampling each bone's signed distance field in its rest frame; the fields
 are looked up and points pushed out of bones by :mod:`.bone_distance`.
 
 The bone's padded bounding box is cut into bricks of ``BRICK`` x ``BRICK`` x ``BRICK`` cells of

@@ -241,7 +241,7 @@ def collide(contacts, options, lists, bvh, bone_table):
     returned :class:`CandidateLists` (grown when they outgrow their room). ``contacts`` a
     :class:`Contacts`, ``options`` :class:`ContactOptions`, ``bvh`` and ``bone_table`` from
     :func:`used_structures`. Python around the kernels, called once an iteration: compiled,
-    it compiled its kernels a second time (issue 27)."""
+    it compiled its kernels a second time (docs/performance.md, "The first run")."""
     spheres, hashed, solids = contacts.spheres, contacts.hashed, contacts.solids
     use_solids = solids.transforms.shape[0] > 0
     t1 = time.perf_counter()
@@ -320,7 +320,7 @@ def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, so
     for :func:`~muscle_mss.core.solid_contacts.solid_contacts`). Returns ``(passes run,
     deepest penetration left mm, lists)``: the deepest left is that found by the last pass
     before its response, 0 when nothing collided. A Python loop around the kernels: passes are
-    few, and a compiled loop compiled :func:`collide` a second time (issue 27)."""
+    few, and a compiled loop compiled :func:`collide` a second time."""
     spheres, solids = contacts.spheres, contacts.solids
     solids.margin[:] = -np.inf     # every particle tested afresh by the first pass
     done = 0

@@ -1,4 +1,4 @@
-"""The deterministic elbow demo scene (DESIGN §4, issue 12): a right arm with the seven elbow
+"""The deterministic elbow demo scene (DESIGN §4): a right arm with the seven elbow
 muscles and one flexion–extension of the elbow.
 
 Axes: x lateral (to the right), y anterior, z superior; millimetres; the centre of the humeral head
@@ -307,7 +307,7 @@ def muscle_attachments(name: str):
 
 
 def demo_arm_scene(size: str = "full") -> Scene:
-    """The demo elbow scene (DESIGN §4, issue 12).
+    """The demo elbow scene (DESIGN §4).
 
     ``"full"``: scapula, humerus, ulna and radius, the seven muscles of :data:`MUSCLE_NAMES`
     with an 8x8 ``fibre_grid`` of 30-vertex fibres each, and the flexion 10 -> 130 -> 10 degrees

@@ -1,6 +1,6 @@
 """Arrays kept on disk between runs, keyed by content: what the first time point of every
 ``muscle-mss run`` and every ParaView session would otherwise compute again from inputs that
-rarely change (issue 15).
+rarely change.
 
 A :class:`DiskStore` keeps one ``.npz`` file of named arrays per key in a folder named after the
 store, a digest of the source files that compute what it holds and the runtime

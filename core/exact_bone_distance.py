@@ -1,4 +1,4 @@
-"""Exact distances to the bones where the sampled fields are not exact enough (issue 30).
+"""Exact distances to the bones where the sampled fields are not exact enough.
 
 The bones' sampled signed distance fields (:mod:`.bone_distance`) are within about half a fine
 cell of the exact distance on smooth bone, but farther next to thin or sharp features: on an

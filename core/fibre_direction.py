@@ -1,4 +1,4 @@
-"""Which way each fibre runs: from its muscle's origin to its insertion (issue 30).
+"""Which way each fibre runs: from its muscle's origin to its insertion.
 
 The scene format has every fibre run from origin to insertion, and the lattice, the fixed ends
 and the attachments rely on it: fibre index 0 is the origin. Fibres digitised in both directions

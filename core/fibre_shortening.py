@@ -1,4 +1,4 @@
-"""Fibres that shorten with their muscle (issue 31, ``FibreShortening``).
+"""Fibres that shorten with their muscle (``FibreShortening``).
 
 The paper's springs keep their rest lengths whatever the pose, so a muscle whose attachments
 come closer keeps its fibre length and folds (the demo arm's brachialis at 130 degrees: fibres

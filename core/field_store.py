@@ -2,7 +2,7 @@
 
 Sampling a bone's field (:func:`muscle_mss.core.bone_field_sampling.bone_distance_field`) takes
 2-4 s per bone of the demo thigh, paid at the first time point of every ``muscle-mss run`` and
-every ParaView session although the bones of a scene rarely change (issue 15). A field is stored
+every ParaView session although the bones of a scene rarely change. A field is stored
 per bone surface, keyed by its triangles and its points bitwise, in a
 :class:`~muscle_mss.core.disk_store.DiskStore` keyed by the sampler's source
 (:data:`SAMPLER_SOURCES`: the field's layout, the sampling and its defaults, the exact distance)

@@ -260,7 +260,7 @@ def _iterate(model, settings, mss, springs, contacts, control, lists, progress):
     trimmed to the iterations run.
 
     The loop is Python calling one kernel per stage: a compiled loop around them compiled
-    and linked every stage a second time (10 s of a first run's compile, issue 27), to save
+    and linked every stage a second time (10 s of a first run's compile), to save
     what the calls cost (about 40 microseconds an iteration, against 0.5-1 ms for a thigh
     iteration at N = 20; docs/performance.md)."""
     cap = int(settings.iterations)

@@ -92,7 +92,7 @@ DEFAULT_DISPLACEMENT_THRESHOLD = 1e-3   # mm per iteration
 # lattice-26: a particle's stiffest mode is below sqrt(2 * 26 * k / m) ~ 23 rad/s, and
 # symplectic Euler needs omega * dt < 2; 0.05 s gives 1.1 in that worst case.
 DEFAULT_TIME_STEP = 0.05                # s
-# Measured on the small and full demo at the pose farthest from rest (issue 5): without drag
+# Measured on the small and full demo at the pose farthest from rest: without drag
 # the lattices ring for the whole solve (damping ratio c / (2 sqrt(k m)) = 0.08 per spring) and
 # fold; 5 1/s damps the slow modes of a 20-particle fibre within ~100 iterations.
 DEFAULT_DRAG = 5.0                      # 1/s

@@ -60,7 +60,7 @@ def grid_table(centres, radius, cell, objects):
     ``items[e]`` is the ``e``-th in key order; ``tops`` the size levels
     (:func:`size_levels`, :func:`fill_grid`). Built once per solve: Python around
     :func:`fill_grid` (compiled, it took 1.5 s of a first run's compile and its quantiles 4 s
-    more; issue 27).
+    more).
     """
     n = centres.shape[1]
     tops = size_levels(radius)

@@ -190,7 +190,7 @@ def muscle_contacts(centres, radius, muscle, fixed, moves, skin, cell, lists, di
     :func:`list_contacts` fills them (the same response, bit for bit). Returns ``(spheres
     refreshed, lists)``: keep the returned lists (lists that outgrew their room got more).
     Python around the kernels, called once an iteration: compiled, it compiled its kernels a
-    second time (issue 27).
+    second time (docs/performance.md, "The first run").
     """
     (reference, stamp, clock, queue, count, slot, idx, hit, hits, grid_cell, drift, lower, dims,
      start, items, bits, packed, tops, key, begin, end, partner) = lists

@@ -1,5 +1,5 @@
 """Exact signed distance to a closed triangle surface (the ground truth of the bones' sampled
-fields, :mod:`.bone_distance`, issues 12 and 14).
+fields, :mod:`.bone_distance`).
 
 The distance of a point is that to its nearest triangle: Ericson's closest point on a triangle
 (Real-Time Collision Detection §5.1.5), the nearest triangle found in a bounding volume
