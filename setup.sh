@@ -6,7 +6,7 @@
 #   - the numeric kernels compiled (README "The first run"), into the user's kernel cache that
 #     every later run and the tests load them from: the venv's first (the demo needs only
 #     those), then Debian's Python's (the one pvpython and pvbatch run). One after the other:
-#     issue 27 saw the two slow each other by 60-80 % at once on two cores (two warm-ups of the
+#     at once on two cores the two slowed each other by 60-80 % (two warm-ups of the
 #     default settings side by side did not, later: docs/performance.md).
 # ./demo.sh calls it as `./setup.sh --background`: it compiles nothing before it returns (the
 # demo compiles the default settings' kernels, which are all it needs, in a second process while

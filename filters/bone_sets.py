@@ -6,7 +6,7 @@ bone_spheres`, so that the Spring Builder (clearing muscle radii at rest), the M
 Solver (collisions) and the motion runner (remaining penetration) see the same spheres.
 
 Bones are rigid, so a bone's spheres are sampled once per bone shape and spacing and then moved
-with the bone (issue 15: the Poisson-disc sampling of every posed bone at every time point was
+with the bone (the Poisson-disc sampling of every posed bone at every time point was
 0.2 s per time point on the demo leg). The cache is keyed by the bone's connectivity and the
 spacing; an entry keeps the points it was sampled on. A later bone with the same connectivity
 whose points are bitwise those points gets the cached spheres as they are (so the same input

@@ -3,7 +3,7 @@
 The Volume-Error Probe checks every rest surface it measures against (closed, manifold,
 outward) at every time point, although the rest surfaces are the scene's and never change:
 :func:`rest_surface_problems` remembers the answer per surface content (a digest of its points
-and triangles), so a time slider or a motion run checks each rest surface once (issue 15).
+and triangles), so a time slider or a motion run checks each rest surface once.
 """
 import hashlib
 from collections import OrderedDict

@@ -11,7 +11,7 @@ vertices bytes) and kept dense as float32, applied to the cage's displacement fr
 :class:`MuscleBinding`). The full demo at N = 80 (about 1100 surface vertices, 2312 cage
 vertices per muscle) keeps about 10 MB per muscle, 130 MB for its 13 muscles.
 
-Surfaces kept out of bones (issue 12). The cage follows the collision spheres, and between
+Surfaces kept out of bones. The cage follows the collision spheres, and between
 them the surface can sink into a bone. With the optional RestBones and PosedBones inputs, each
 bone gets a signed distance field (:mod:`muscle_mss.core.bone_distance`, sampled once in the
 rest frame, rebuilt only when RestBones or BoneFieldSpacing change) and every deformed vertex

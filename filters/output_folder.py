@@ -1,5 +1,5 @@
 """A run's hold on its output folder: the lock, the manifest of the files it wrote, and what
-``--overwrite`` may remove (issue 30).
+``--overwrite`` may remove.
 
 * **Lock.** A run holds ``OUT/.muscle-mss.lock`` (``fcntl.flock``, the file holding its pid)
   from the check of the folder to its last write; a second run into the same folder is refused

@@ -4,7 +4,7 @@
 The motion table sets the filter's time steps, so the ParaView time slider, pvpython's
 ``UpdatePipeline(t)`` and an animation drive it. The blend weights depend only on the rest
 inputs and the weight properties; they are computed once and reused for every time, as are
-the model's collision radii cleared of the rest bones (issue 14: the same clearing as the Spring
+the model's collision radii cleared of the rest bones (the same clearing as the Spring
 Builder's with its Bones input, so that a pipeline built without that input does not push
 muscle spheres out of the bones at rest and solves the same).
 """

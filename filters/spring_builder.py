@@ -62,7 +62,7 @@ LATTICE_NEIGHBOURHOOD = {LAYOUT_LATTICE_6: 6, LAYOUT_LATTICE_26: 26}
 MIN_PARTICLES_PER_FIBRE = {LAYOUT_LATTICE_6: 8, LAYOUT_LATTICE_26: 8, LAYOUT_DELAUNAY: 8,
                            LAYOUT_KNN: 5}
 """The coarsest resolution N each layout supports, measured on the small demo scenes (the thigh
-at t = 0.5 s, the arm at 130 degrees; issue 30): below it a muscle's surface was carried up to
+at t = 0.5 s, the arm at 130 degrees): below it a muscle's surface was carried up to
 0.3-4.6 m off and its volume error reached 11-2767 % (lattice-26 at N = 3: 40 % and 418 mm on
 the thigh, 753 % and 4.6 m on the arm); from it on, at most 5.4 % and 59 mm on the thigh and 31 %
 (k-NN at N = 5; 28 % lattice-26 at N = 8) on the arm, whose default N = 20 gives 8.5 %."""

@@ -40,7 +40,7 @@ from .spring_builder import DEFAULT_LAYOUT, LAYOUTS
 
 BEND_LIMIT = 1.1
 """A fibre whose arc length over chord (end-to-end distance) exceeds its own at rest by more
-than 10 % is counted as buckled (issue 31's bound of 1.1 on arc/chord, taken relative to the
+than 10 % is counted as buckled (a bound of 1.1 on arc/chord, taken relative to the
 rest shape, which some fibres exceed at rest: the demo thigh's adductor brevis up to 1.15): a
 fibre that keeps its shape stays at 1, a fibre folding instead of shortening goes above (1.3-1.7
 at the elbow's 130 degrees without ``FibreShortening``), as may one that wraps a bone."""
