@@ -16,11 +16,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 def _load_tbb() -> None:
     """Load the library of the pip package ``tbb`` (a dependency; it lives in ``<venv>/lib``,
     which is not on the loader's path), so that Numba, which opens ``libtbb.so.12`` by name,
-    finds it and runs the parallel kernels on TBB (its first choice when available): the
-    paper's 500 iterations of the demo thigh at N = 20 took 0.47-0.51 s on TBB against 0.60 s
-    on OpenMP with the threads sleeping between parallel regions, and the same 0.8 s as
-    OpenMP with one of the two cores busy with something else; the results are bitwise the
-    same (Numba divides the work itself). Debian's Numba has no TBB layer: OpenMP there."""
+    finds it and runs the parallel kernels on TBB (its first choice when available; faster
+    than OpenMP on an idle machine, the same results bitwise: docs/performance.md, "Threads").
+    Debian's Numba has no TBB layer: OpenMP there."""
     library = os.path.join(sys.prefix, "lib", "libtbb.so.12")
     if sys.platform.startswith("linux") and os.path.exists(library):
         try:

@@ -15,16 +15,14 @@ tangents at rest), gets the rest length
     L' = L sqrt(cos^2(theta) s^2 + sin^2(theta) / s),     s = (s_i + s_j) / 2,
 
 the rest shape contracted by s along the fibres and widened by 1 / sqrt(s) across them, which
-keeps its volume (the muscle thickens as it shortens). Measured on both demo motions against
-two other rules (every spring times s; along the fibres only) in ``docs/accuracy.md``: this one
-keeps the volume error nearest today's. A spring with both factors 1 keeps its rest length
-bitwise, so a model that nowhere shortens is solved exactly as without the rule.
+keeps its volume (the muscle thickens as it shortens); of the rules measured in
+docs/accuracy.md it changes the volume error least. A spring with both factors 1 keeps its rest
+length bitwise, so a model that nowhere shortens is solved exactly as without the rule.
 
 The connective tissue follows too (:func:`shortened_target`): it holds a particle toward its
-posed position, where a shortening muscle's fibres keep their rest length and bend (the elbow
-flexors at 130 degrees: arc / chord 1.36-1.42 posed), so the tissue held them bent and long
-(thigh walk: the biceps femoris' short head shortened its fibres 9 % for 14 % of end-to-end
-shortening; 13.8 % without the tissue). In a muscle whose ends come closer, by the factor
+posed position, where a shortening muscle's fibres keep their rest length and bend, so the
+tissue would hold them bent and long (docs/accuracy.md, "The tissue's target shortens with the
+muscle"). In a muscle whose ends come closer, by the factor
 
     s_m = |insertion centroid - origin centroid| posed / at rest
 
@@ -32,7 +30,7 @@ shortening; 13.8 % without the tissue). In a muscle whose ends come closer, by t
 contracted by s_m along that origin-insertion line and widened by 1 / sqrt(s_m) across it
 (volume kept), carried by the rigid motion that best fits its fibres' end particles; blended
 with the posed positions by ``w = smoothstep((1 - s_m) / TARGET_BLEND)``, so that it is the
-posed pose at s_m = 1 and leaves it smoothly. Measured in docs/accuracy.md.
+posed pose at s_m = 1 and leaves it smoothly.
 """
 from __future__ import annotations
 
