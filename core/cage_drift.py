@@ -5,7 +5,7 @@ A surface vertex follows its muscle's cage through its MVC weights. Where the ca
 thin, concave part of a lattice surface) a vertex close to it can carry weights of both signs much
 larger than one, and then moves much more than the cage around it: on the small demo's rectus
 femoris subdivided to 221,184 triangles, one vertex 0.03 mm inside the cage at rest ended 14 mm off
-it at the most flexed pose. :func:`.mvc.bounded_coordinates` now caps the absolute sum of every
+it at the most flexed pose. :func:`.mvc.bounded_coordinates` caps the absolute sum of every
 vertex's weights at 8 (that vertex drifts 0.8 mm), but a vertex can still move up to 8 times as far
 as the cage's non-affine motion around it. The rule: a vertex's *cage drift* is its distance to the
 cage now minus its distance at rest (exact distances to the nearest cage triangle, the cage carried

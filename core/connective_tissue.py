@@ -25,7 +25,7 @@ so that a fibre lengthens and shortens, and a muscle slides along its neighbours
 tissue ``along`` times as stiff as the one holding it sideways. The kernels take it as
 *targets* (6, n): rows 0-2 ``t_i``, rows 3-5 ``g_i = sqrt(1 - along) f_i`` (energy
 ``k_i (|d|^2 - (d . g)^2) / 2``); (3, n) targets, ``along = 1``, are the isotropic tissue,
-computed exactly as before it could be anisotropic.
+computed without the along term.
 """
 from __future__ import annotations
 
