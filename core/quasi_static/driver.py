@@ -27,12 +27,9 @@ ARMIJO = 1e-4                   # sufficient decrease of the line search
 BACKTRACKS = 40                 # line search halvings before the solve gives up
 # The line search's first trial: at most this many times the last accepted step fraction (and
 # at most the full step). The preconditioner is one block per muscle, so where muscles touch
-# both spheres of a pair move to undo the whole overlap and the full step overshoots: with
-# co-rotational springs (contacts 1.0) it was rejected in 200 of 206 iterations at the thigh's
-# most flexed pose (N = 20), the accepted fraction about 0.2. Starting from 1.5 times the last
-# fraction (with 1.0 always first) the four benchmark poses of docs/solver-notes.md took 1,016
-# energy evaluations and 8.9 s instead of about 1,700 and 11.7 s (1.2: 985, 9.2 s; 2: 1,417,
-# 10.6 s); with Hooke springs 16.2 s either way.
+# both spheres of a pair move to undo the whole overlap and the full step overshoots; a first
+# trial that follows the last accepted fraction saves about 40 % of the energy evaluations
+# (docs/solver-notes.md, "What paid").
 STEP_GROWTH = 1.5
 # Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
 # fraction of the energy is rounding, not an increase (the last steps of a tight solve).
