@@ -51,12 +51,10 @@ DEFAULT_ITERATIONS = 2000
 DEFAULT_TIME_BUDGET = 1.0               # s
 # Without a volume force the converged lattices lose 9-22 % of their volume where the posed
 # fibres are stretched ~10 % (lattice-26 cells 2.5 times longer than wide narrow several
-# times faster than they stretch); 5 g/(mm s^2) keeps the cage volumes within ~3 %. Muscle is
-# nearly incompressible, and the volume term's stiff mode is implicit (mss._implicit_volume_forces),
-# so a stiff term does not shorten the stable TimeStep. On the full elbow demo at 130 deg (bones
-# as solids) the triceps medial head, its fibres stretched 30 %, keeps its cage within -4.4 %
-# at 50 and -2.1 % at 200 (surface volume error 6.7 -> 4.8 %); 1000 gains little more (4.2 %)
-# because the rest of the surface's error is the MVC map's and the bone push's, not the cage's.
+# times faster than they stretch). Muscle is nearly incompressible, and the volume term's stiff
+# mode is implicit (mss._implicit_volume_forces), so a stiff term does not shorten the stable
+# TimeStep; above 200 little is gained, the rest of the surface's error being the MVC map's and
+# the bone push's (docs/accuracy.md, "The elbow at 130°").
 DEFAULT_BULK_MODULUS = 200.0            # g/(mm s^2)
 # The connective tissue (epimysium, septa, fascia) holding every free particle toward its posed
 # rest position, as a ratio to the fibre springs' stiffness (core/connective_tissue.py); 0 is
@@ -67,12 +65,9 @@ DEFAULT_BULK_MODULUS = 200.0            # g/(mm s^2)
 DEFAULT_CONNECTIVE_TISSUE = 0.1
 # The tissue's stiffness along each particle's fibre as a fraction of it across (1: isotropic):
 # below 1 a fibre lengthens and shortens, and a muscle slides along its neighbours, against a
-# weaker tissue (core/connective_tissue.py). Measured with ConnectiveTissue 0.1, the quasi-static
-# method and FibreShortening over both demo motions (docs/accuracy.md), 0.1 beats 1 in every
-# column (elbow median iterations 410 / 479, flexors' follow slope 0.75-0.86 / 0.57-0.67, largest
-# volume error 3.26 / 4.40 %); with co-rotational springs as well the flexors' slope is
-# 0.84-0.97 and every time point converges. (Without FibreShortening, Hooke springs and 0.1
-# left a sphere wedged 3.4 mm deep at the elbow's 130 degrees.)
+# weaker tissue (core/connective_tissue.py). Over both demo motions 0.1 beats 1 in iterations,
+# in how well the shortening fibres follow their ends and in volume error (docs/accuracy.md,
+# "With the quasi-static method: a tissue weaker along the fibres").
 DEFAULT_TISSUE_ALONG = 0.1
 # Fibres shorten with their muscle (core/fibre_shortening.py): with it the elbow's flexors
 # shorten and thicken instead of folding (fibres' arc / chord over the motion at most 1.18
@@ -104,14 +99,9 @@ DEFAULT_HISTORY = 8             # L-BFGS pairs kept
 # The contact stiffness w as a multiple of the largest diagonal entry of L (the sum of the
 # stiffnesses of one particle's springs, 260 g/s^2 for a lattice-26 particle at the Spring
 # Builder's 10 g/s^2), per spring energy. Stiffer contacts leave less overlap for the final
-# passes but are stiff modes the Laplacian preconditioner does not know. Hooke springs: on the
-# full demo thigh at N = 20, walking pose, 1.0 did not converge in 500 iterations, 0.3 converged
-# in 398 (deepest overlap left for the passes 0.19 mm); 0.1 and 0.03 did not converge either
-# (more contacts slide). Co-rotational springs (ConnectiveTissue 0.1, N = 20): at 0.3 the elbow
-# at 130 degrees ends with a biceps sphere wedged 5.4 mm deep between humerus and radius, which
-# the final passes cannot free; at 1.0 every time point of both demo motions converges (the
-# thigh walk in 3,483 iterations in all, against 2,150 at 0.3) and the cages' volume error is
-# about halved (the final passes have less overlap to take up).
+# passes but are stiff modes the Laplacian preconditioner does not know; each value is the one at
+# which the demo poses converge (docs/solver-notes.md, "The elbow's wedge and the contact
+# weight"; with co-rotational springs 0.3 left a sphere wedged at the elbow's 130 degrees).
 DEFAULT_CONTACT_WEIGHTS = {SPRINGS_HOOKE: 0.3, SPRINGS_COROTATIONAL: 1.0}
 # The quasi-static method's spring energy: the paper's Hooke springs, or co-rotational springs
 # (core/quasi_static/corotational.py), which keep their stiffness across themselves when
