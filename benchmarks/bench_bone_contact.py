@@ -34,7 +34,7 @@ from muscle_mss.core.bone_field_sampling import bone_distance_field
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_arm import demo_arm_scene
 from muscle_mss.core.demo_scene import demo_scene
-from muscle_mss.core.model import prepare
+from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.solid_contacts import solid_points
 from muscle_mss.core.settings import METHOD_RELAXATION, SolverSettings
@@ -49,18 +49,17 @@ from bench_solver import (BONE_COUNTS, ITERATIONS, REPEATS, machine, posed_workl
 CONTACTS = (BONE_CONTACT_SPHERES, BONE_CONTACT_SOLID)
 METHODS = ("paper relaxation", "quasi-static")
 PAPER_SETTINGS = SolverSettings.build(method=METHOD_RELAXATION, iterations=ITERATIONS,
-                                      connective_tissue=0.0)
+                                      connective_tissue=0.0, fibre_shortening=False)
 """The paper's method and model (no connective tissue), whatever the defaults."""
 
 
-def median_solve(model, prepared, bones, solids):
+def median_solve(model, prepared, bones):
     """``(median total s, its MSS s, its muscle-bone CD s, bone contacts in the last
     iteration)`` of :data:`REPEATS` paper solves."""
     runs = []
     for _ in range(REPEATS):
         tick = time.perf_counter()
-        result = S.solve(model, *bones, settings=PAPER_SETTINGS,
-                         prepared=prepared, bone_solids=solids)
+        result = S.solve(model, bones, PAPER_SETTINGS, prepared=prepared)
         runs.append((time.perf_counter() - tick, result.phase_seconds["mss"],
                      result.phase_seconds["bone_cd"], int(result.bone_pairs[-1])))
     return sorted(runs)[len(runs) // 2]
@@ -92,16 +91,15 @@ def contact_rows(folder, scene, sizes):
             prepared = prepare(model)
             spheres_only = replace(model, in_bone_at_rest=None)
             prepared_spheres = prepare(spheres_only)
-            none = (None, None, None)
-            for args, kind in ((bones, None), (none, solids)):    # compiled, warm
-                S.solve(model, *args,
-                        settings=SolverSettings.build(method=METHOD_RELAXATION, iterations=2),
-                        prepared=prepared, bone_solids=kind)
-            spheres = median_solve(model, prepared, bones, None)
+            for kind in (bones, Bones(solids=solids)):    # compiled, warm
+                S.solve(model, kind, SolverSettings.build(method=METHOD_RELAXATION, iterations=2,
+                                                          fibre_shortening=False),
+                        prepared=prepared)
+            spheres = median_solve(model, prepared, bones)
             row = [n, label, t, len(solid_points(prepared_spheres)),
                    len(solid_points(prepared)), spheres[0], spheres[2], spheres[3]]
             for m, p in ((spheres_only, prepared_spheres), (model, prepared)):
-                total, mss, bone_cd, pairs = median_solve(m, p, none, solids)
+                total, mss, bone_cd, pairs = median_solve(m, p, Bones(solids=solids))
                 # the solid contacts run in the MSS step's parallel region: their cost is
                 # the MSS time above the sphere-set solve's (the same model, the same steps)
                 row += [total, mss - spheres[1] + bone_cd, pairs]

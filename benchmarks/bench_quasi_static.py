@@ -38,7 +38,7 @@ import numpy as np
 from muscle_mss.core import solver as S
 from muscle_mss.core.demo_arm import demo_arm_scene, flexion_angles
 from muscle_mss.core.demo_scene import demo_scene
-from muscle_mss.core.model import prepare
+from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_SHORTENING,
                                       DEFAULT_ITERATIONS, DEFAULT_SPRINGS,
@@ -60,7 +60,8 @@ ARM_ANGLES = (70.0, 130.0)
 
 def quasi_static(**values) -> SolverSettings:
     """Quasi-static settings from flat keywords (:meth:`SolverSettings.build`)."""
-    return SolverSettings.build(method=METHOD_QUASI_STATIC, **values)
+    return SolverSettings.build(method=METHOD_QUASI_STATIC,
+                                **{"fibre_shortening": False, **values})
 
 
 def chosen(args, **values) -> SolverSettings:
@@ -125,7 +126,7 @@ def scenes(names):
 
 def timed(model, bones, solids, prepared, settings):
     tick = time.perf_counter()
-    result = S.solve(model, *bones, prepared=prepared, bone_solids=solids, settings=settings)
+    result = S.solve(model, Bones(bones, solids), settings, prepared=prepared)
     return result, time.perf_counter() - tick
 
 
@@ -140,7 +141,8 @@ def pose_row(model, bones, solids, prepared, args, paper_model):
     free, _ = timed(model, bones, solids, prepared,
                     chosen(args, iterations=args.cap, connective_tissue=0.0))
     paper, _ = timed(paper_model, bones, solids, prepare(paper_model), SolverSettings.build(
-        method=METHOD_RELAXATION, iterations=500, connective_tissue=0.0, tissue_along=1.0))
+        method=METHOD_RELAXATION, iterations=500, connective_tissue=0.0, tissue_along=1.0,
+        fibre_shortening=False))
     share = result.tissue_share
     return (result.iterations, seconds, result.converged, float(result.residual[-1]),
             *distance(result.positions, tight.positions), tight.converged,
@@ -178,8 +180,8 @@ def walk_rows(name, scene, folder, args, flexed_time, n):
             start = None if (mode == "cold" or last is None) else (
                 model.positions + (last[1] - last[0]))
             tick = time.perf_counter()
-            result = S.solve(model, *bones, settings=settings, prepared=prepare(model),
-                             start=start, bone_solids=solids)
+            result = S.solve(model, Bones(bones, solids), settings, prepared=prepare(model),
+                             start=start)
             seconds.append(time.perf_counter() - tick)
             last = (model.positions, result.positions)
             iterations.append(result.iterations)
@@ -208,8 +210,8 @@ def main(args):
                 model, bones, solids = workload(pipeline, t, args.fibre_shortening)
                 paper_model = workload(pipeline, t, False)[0]
                 prepared = prepare(model)
-                S.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                        settings=quasi_static(iterations=2))        # compiled, warm
+                S.solve(model, Bones(bones, solids), quasi_static(iterations=2),
+                        prepared=prepared)        # compiled, warm
                 table1.append((name, n, label, t, *pose_row(model, bones, solids, prepared,
                                                              args, paper_model)))
                 print(table1[-1], flush=True)

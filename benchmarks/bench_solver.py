@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from muscle_mss.core import solver as S
-from muscle_mss.core.model import prepare
+from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.bone_spheres import bone_spheres
 from muscle_mss.core.demo_scene import demo_scene
 from muscle_mss.core.settings import METHOD_RELAXATION, STRUCTURES, SolverSettings
@@ -68,7 +68,7 @@ def posed_workload(scene_folder, time_point, n):
     for k, (name, bone) in enumerate(V.blocks(posed_bones)):
         c, r = bone_spheres(V.points_of(bone), V.triangles_of(bone), count=BONE_COUNTS[name])
         centres.append(c), radii.append(r), ids.append(np.full(len(c), k))
-    return model, (np.concatenate(centres), np.concatenate(radii), np.concatenate(ids))
+    return model, Bones((np.concatenate(centres), np.concatenate(radii), np.concatenate(ids)))
 
 
 def main(sizes):
@@ -83,15 +83,18 @@ def main(sizes):
         per_muscle = int(np.diff(model.offsets)[0])
         boundary = int(model.boundary.sum() / len(model.names))
         for structure in STRUCTURES:
-            # the paper's method and model (no connective tissue), whatever the defaults
+            # the paper's method and model (no connective tissue, the paper's springs),
+            # whatever the defaults
             settings = SolverSettings.build(method=METHOD_RELAXATION, iterations=ITERATIONS,
-                                            structure=structure, connective_tissue=0.0)
-            S.solve(model, *bones, settings=SolverSettings.build(
-                method=METHOD_RELAXATION, iterations=2, structure=structure), prepared=prepared)
+                                            structure=structure, connective_tissue=0.0,
+                                            fibre_shortening=False)
+            S.solve(model, bones, SolverSettings.build(
+                method=METHOD_RELAXATION, iterations=2, structure=structure,
+                fibre_shortening=False), prepared=prepared)
             runs = []
             for _ in range(REPEATS):
                 start = time.perf_counter()
-                result = S.solve(model, *bones, settings=settings, prepared=prepared)
+                result = S.solve(model, bones, settings, prepared=prepared)
                 runs.append((time.perf_counter() - start, result.phase_seconds,
                              result.projection_passes))
             runs.sort(key=lambda run: run[0])

@@ -34,7 +34,7 @@ import scipy.sparse as sparse
 
 from muscle_mss.core import solver as S
 from muscle_mss.core.fibre_shortening import shortened_rest_lengths
-from muscle_mss.core.model import prepare
+from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.quasi_static.preconditioner import model_springs, preconditioner
 from muscle_mss.core.settings import METHOD_RELAXATION, SPRINGS_HOOKE, SolverSettings
 
@@ -77,13 +77,12 @@ def ablation_rows(model, bones, solids, tissue, cap):
         tick = time.perf_counter()
         start = None
         if from_paper:
-            start = S.solve(m, *bones, prepared=p, bone_solids=solids, settings=
+            start = S.solve(m, Bones(bones, solids), prepared=p, settings=
                             SolverSettings.build(method=METHOD_RELAXATION, iterations=1000,
-                                                 connective_tissue=tissue,
-                                                 tissue_along=1.0)).positions
+                                                 connective_tissue=tissue, tissue_along=1.0,
+                                                 fibre_shortening=False)).positions
         paper_seconds = time.perf_counter() - tick
-        result = S.solve(m, *bones, prepared=p, bone_solids=solids, settings=settings,
-                         start=start)
+        result = S.solve(m, Bones(bones, solids), settings, prepared=p, start=start)
         seconds = time.perf_counter() - tick
         reference = result if reference is None else reference
         rows.append((label, result.iterations, seconds, paper_seconds, result.converged,
@@ -148,7 +147,7 @@ def main(argv=None):
     parser.add_argument("--cap", type=int, default=1500, help="iteration cap")
     args = parser.parse_args(argv)
     model, bones, solids = thigh_workload(args.time, 20)
-    S.solve(model, *bones, bone_solids=solids, settings=quasi_static(iterations=2))
+    S.solve(model, Bones(bones, solids), quasi_static(iterations=2))
     ablation, reference, prepared = ablation_rows(model, bones, solids, args.tissue, args.cap)
     curvature = curvature_rows(model, prepared, reference.positions, args.tissue)
     lines = [

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sparse
 
 from muscle_mss.core import quasi_static as Q
-from muscle_mss.core.model import prepare
+from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.settings import SPRINGS_HOOKE
 
 from bench_quasi_static import quasi_static, thigh_workload
@@ -64,8 +64,8 @@ def rayleigh_quotients(model, bones, solids, cap):
 
     Q.LBFGSHistory.add = watched
     try:
-        result = Q.solve(model, *bones, prepared=prepared, bone_solids=solids,
-                         settings=quasi_static(iterations=cap, **PAPER_MODEL))
+        result = Q.solve(model, Bones(bones, solids), quasi_static(iterations=cap, **PAPER_MODEL),
+                         prepared=prepared)
     finally:
         Q.LBFGSHistory.add = keep
     return np.array(quotients), result

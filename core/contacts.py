@@ -29,7 +29,7 @@ from . import octree_bvh, spatial_hash, sphere_lists
 from .model import PreparedModel
 from .collision_spheres import Spheres, make_spheres
 from .settings import STRUCTURE_BVH, SolverSettings
-from .solid_contacts import respond_solids, solid_contacts
+from .solid_contacts import respond_solids, solid_contacts, solid_grid, solid_state
 
 # The final collision passes (:func:`project`) stop after this many passes in which the sum of
 # the responses' displacements did not fall below PROGRESS times its least so far.
@@ -140,6 +140,16 @@ def bvh_state(spheres: Spheres, settings: SolverSettings) -> octree_bvh.OctreeBV
     return octree_bvh.octree_bvh(make_spheres(np.zeros(0), np.zeros(0, np.int64),
                                               np.zeros(0, bool), np.zeros(0, bool)))
 
+
+
+def contact_setup(spheres: Spheres, sphere_state, settings: SolverSettings, bone_solids, x,
+                  prep: PreparedModel):
+    """``(Contacts, candidate lists)`` of one solve, both methods': the structure ``settings``
+    choose over ``spheres`` and the solids' particles at ``x`` (3, n) mm."""
+    hashed, bone_table, lists = hash_state(spheres,
+                                           settings.contacts.structure != STRUCTURE_BVH)
+    return Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings),
+                    solid_state(bone_solids, x, prep), solid_grid(bone_solids)), lists
 
 # The parallel kernels below take the arrays of the state, not the tuples: Numba's parallel
 # loops lost writes made by an inlined function to arrays taken out of a tuple.

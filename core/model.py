@@ -120,7 +120,8 @@ class SolveResult:
     ``remaining_penetration`` (mm) the deepest overlap the last of them found (0: none; at most
     the tolerance unless the passes ran out); ``method`` the method that solved it;
     ``tissue_share`` (M,) % the connective tissue's force over the springs' per muscle
-    (:func:`~muscle_mss.core.connective_tissue.tissue_share`; None: not measured).
+    (:func:`~muscle_mss.core.connective_tissue.tissue_share`; None: not measured);
+    ``bone_contact`` the :attr:`Bones.contact` solved against.
     """
 
     positions: np.ndarray
@@ -138,6 +139,7 @@ class SolveResult:
     remaining_penetration: float = 0.0
     method: str = METHOD_RELAXATION
     tissue_share: np.ndarray | None = None
+    bone_contact: str = "none"
 
     @property
     def iterations(self) -> int:
@@ -146,6 +148,35 @@ class SolveResult:
     @property
     def colliding_pairs(self) -> np.ndarray:
         return self.muscle_pairs + self.bone_pairs
+
+
+BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, BONE_CONTACT_NONE = "solid", "sphere set", "none"
+BONE_CONTACTS = (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES)
+
+
+@dataclass(frozen=True)
+class Bones:
+    """The posed bones as the muscle-bone contacts read them: ``solids`` (a
+    :class:`~muscle_mss.core.bone_distance.BoneSolids`) or ``spheres``, the paper's sphere sets
+    ``(centres (b, 3) mm, radius (b,) mm, bone (b,) int)`` sorted by bone; neither: no bones."""
+
+    spheres: tuple | None = None
+    solids: object = None
+
+    @property
+    def contact(self) -> str:
+        """Which bone contact these bones give: one of :data:`BONE_CONTACTS`, or ``"none"``."""
+        if self.solids is not None:
+            return BONE_CONTACT_SOLID
+        return BONE_CONTACT_SPHERES if self.spheres is not None else BONE_CONTACT_NONE
+
+    @property
+    def sphere_arrays(self) -> tuple:
+        """``spheres``, or three Nones."""
+        return self.spheres if self.spheres is not None else (None, None, None)
+
+
+NO_BONES = Bones()
 
 
 @dataclass

@@ -52,19 +52,18 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from .bone_distance import BoneSolids
-from .contacts import (Contacts, bounding_box, bvh_state, collide, collision_spheres,
-                       contact_options, final_passes, gather_sphere, hash_state,
-                       respond_sphere, solved_state, used_structures, world_box)
+from .contacts import (bounding_box, collide, collision_spheres, contact_options,
+                       contact_setup, final_passes, gather_sphere, respond_sphere, solved_state,
+                       used_structures, world_box)
 from .errors import MuscleMSSError, PoseError
-from .model import (MSSModel, PreparedModel, SolveResult, check_history_size, prepare,
-                    stability_problem)
+from .model import (NO_BONES, Bones, MSSModel, PreparedModel, SolveResult, check_history_size,
+                    prepare, stability_problem)
 from .connective_tissue import check_along, tissue_stiffness, tissue_targets
 from .mss import mss_state, muscle_step
-from .settings import (METHOD_RELAXATION, STRUCTURE_HASH, TERMINATION_BUDGET,
+from .settings import (METHOD_RELAXATION, TERMINATION_BUDGET,
                        TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS,
                        SolverSettings)
-from .solid_contacts import respond_solids, solid_contacts_range, solid_grid, solid_state
+from .solid_contacts import respond_solids, solid_contacts_range
 
 PROGRESS_SECONDS = 0.1
 """How often (s) a solve calls its ``progress``: ParaView's progress bar and abort."""
@@ -204,21 +203,21 @@ def _divergence_limits(positions, offsets, reach) -> np.ndarray:
     return limits
 
 
-def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
-          settings: SolverSettings | None = None, progress=None,
-          prepared: PreparedModel | None = None,
-          bone_solids: BoneSolids | None = None) -> SolveResult:
-    """Relax the posed model with collisions (see the module docstring).
+def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings | None = None,
+          *, prepared: PreparedModel | None = None, start=None, progress=None) -> SolveResult:
+    """Relax the posed model with collisions against ``bones`` (see the module docstring).
 
-    ``bone_centres`` (b, 3) mm, ``bone_radius`` (b,) mm, ``bone_id`` (b,) int, sorted, from
-    :func:`muscle_mss.core.bone_spheres.bone_spheres` on the posed bones (omit for no bones);
+    ``prepared`` from :func:`~muscle_mss.core.model.prepare` for this model's topology;
+    ``start`` must be None (the relaxation starts at rest at the posed particles);
     ``progress(fraction) -> bool`` is called about every :data:`PROGRESS_SECONDS`, True aborts
-    with a :class:`MuscleMSSError`; ``prepared`` from
-    :func:`~muscle_mss.core.model.prepare` for this model's topology; ``bone_solids``: the
-    bones as solids for the muscle-bone contacts, of the iterations and the final passes (then
-    give no bone spheres: they would be ignored).
+    with a :class:`MuscleMSSError`.
     """
     settings = settings or SolverSettings(method=METHOD_RELAXATION)
+    if start is not None:
+        raise MuscleMSSError("the paper relaxation starts from the posed particles; it "
+                             "takes no start positions")
+    bones = bones or NO_BONES
+    bone_solids = bones.solids
     check_settings(settings)
     if bone_solids is not None:
         bone_solids.check()
@@ -238,10 +237,8 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
               if settings.connective_tissue > 0.0 else ())
     mss = mss_state(x, v, np.zeros((3, 3, n)), prep.inv_mass, relaxation.time_step,
                     relaxation.drag, settings.bulk_modulus, prep.cages, offsets, *tissue)
-    spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
-    hashed, bone_table, lists = hash_state(spheres, settings.contacts.structure == STRUCTURE_HASH)
-    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings),
-                        solid_state(bone_solids, x, prep), solid_grid(bone_solids))
+    spheres, sphere_state = collision_spheres(prep, *bones.sphere_arrays)
+    contacts, lists = contact_setup(spheres, sphere_state, settings, bone_solids, x, prep)
     reach = (2.0 * (max(spheres.radius, default=0.0) + max(spheres.bone_radius, default=0.0))
              + (bone_solids.reach if bone_solids is not None else 0.0))
     control = RelaxationControl(

@@ -183,7 +183,10 @@ class SolverSettings:
     caps every termination; ``time_budget`` s; ``bulk_modulus`` g/(mm s^2);
     ``connective_tissue`` the dimensionless ratio of
     :func:`muscle_mss.core.connective_tissue.tissue_stiffness` (0: none); ``tissue_along`` its
-    stiffness along the fibres as a fraction of that across (1: isotropic); ``contacts`` the
+    stiffness along the fibres as a fraction of that across (1: isotropic);
+    ``fibre_shortening`` the springs' rest lengths follow fibres that shorten
+    (:func:`muscle_mss.core.fibre_shortening.shortened_springs`; off here, the paper's springs,
+    on in the filter: :data:`DEFAULT_FIBRE_SHORTENING`); ``contacts`` the
     :class:`ContactSettings` both methods read. The method-specific parts sit beside them.
     """
 
@@ -194,6 +197,7 @@ class SolverSettings:
     bulk_modulus: float = DEFAULT_BULK_MODULUS
     connective_tissue: float = DEFAULT_CONNECTIVE_TISSUE
     tissue_along: float = DEFAULT_TISSUE_ALONG
+    fibre_shortening: bool = False
     contacts: ContactSettings = field(default_factory=ContactSettings)
     relaxation: RelaxationSettings = field(default_factory=RelaxationSettings)
     quasi_static: QuasiStaticSettings = field(default_factory=QuasiStaticSettings)

@@ -1,55 +1,58 @@
-"""The MSS Collision Solver's entry point: solve a posed model by the method its settings name.
+"""The MSS Collision Solver's stage on arrays: :func:`solve` a posed model against the bones.
 
-Two methods share the model (:mod:`~muscle_mss.core.model`) and the contact code
-(:mod:`~muscle_mss.core.contacts`, :mod:`~muscle_mss.core.solid_contacts`):
+:func:`solve` is the whole stage: fibre shortening (:mod:`~muscle_mss.core.fibre_shortening`),
+the method the settings name with its final collision passes, the divergence check, the exact
+push of free particles out of thin bones
+(:func:`~muscle_mss.core.exact_bone_distance.particles_out_of_bones`) and the tissue's share.
+Methods: ``paper relaxation`` (:mod:`~muscle_mss.core.relaxation`, the paper's explicit
+iterations) and ``quasi-static`` (:mod:`~muscle_mss.core.quasi_static`, the static equilibrium).
 
-* ``paper relaxation`` (:mod:`~muscle_mss.core.relaxation`): the paper's explicit iterations,
-  a mass-spring step then the collision response, stopped by a termination;
-* ``quasi-static`` (:mod:`~muscle_mss.core.quasi_static`): the static equilibrium of the same
-  model to a tolerance.
-
-A new method is a module with a ``solve(model, bone_centres, bone_radius, bone_id, settings,
-progress, prepared, bone_solids, ...)`` returning a :class:`~muscle_mss.core.model.SolveResult`,
-its name in :data:`~muscle_mss.core.settings.METHODS` and its branch below. Only the chosen
+A new method is a module with ``solve(model, bones, settings, *, prepared=None, start=None,
+progress=None)`` returning a :class:`~muscle_mss.core.model.SolveResult`, its name in
+:data:`~muscle_mss.core.settings.METHODS` and in :data:`METHOD_MODULES`. Only the chosen
 method's kernels are loaded and compiled.
 """
 from __future__ import annotations
 
+from importlib import import_module
+
 import numpy as np
 
 from .connective_tissue import tissue_share
-from .model import MSSModel, PreparedModel, SolveResult, prepare
+from .model import (NO_BONES, Bones, MSSModel, PreparedModel, SolveResult, prepare,
+                    with_rest_state)
 from .settings import (METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS, SPRINGS_COROTATIONAL,
                        SolverSettings)
 from .errors import MuscleMSSError, PoseError
 
-__all__ = ["MSSModel", "PreparedModel", "SolveResult", "prepare", "solve"]
+__all__ = ["Bones", "MSSModel", "PreparedModel", "SolveResult", "prepare", "solve"]
+
+METHOD_MODULES = {METHOD_RELAXATION: "relaxation", METHOD_QUASI_STATIC: "quasi_static"}
+"""Each method's module (relative to this package), imported when first used."""
 
 
-def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
-          settings: SolverSettings | None = None, progress=None,
-          prepared: PreparedModel | None = None, bone_solids=None, start=None) -> SolveResult:
-    """Solve ``model`` by ``settings.method`` (arguments as
-    :func:`muscle_mss.core.relaxation.solve`; ``start``, the quasi-static method's warm start,
-    is refused by the relaxation, which always starts from rest at the posed positions)."""
+def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings | None = None,
+          *, prepared: PreparedModel | None = None, start=None, progress=None) -> SolveResult:
+    """Solve the posed ``model`` against the posed ``bones`` (None: no bones) by
+    ``settings.method``, the whole stage of the module docstring. ``prepared``: from
+    :func:`~muscle_mss.core.model.prepare` for this model (its rest state is brought up to date
+    when fibre shortening changes the rest lengths); ``start`` (n, 3) mm: the quasi-static
+    warm start (the relaxation refuses one); ``progress(fraction) -> bool``, True aborts."""
     settings = settings or SolverSettings()
-    if settings.method == METHOD_RELAXATION:
-        if start is not None:
-            raise MuscleMSSError("the paper relaxation starts from the posed particles; it "
-                                 "takes no start positions")
-        from .relaxation import solve as relax
-        result = relax(model, bone_centres, bone_radius, bone_id, settings, progress, prepared,
-                       bone_solids)
-    elif settings.method == METHOD_QUASI_STATIC:
-        from .quasi_static import solve as equilibrium
-        result = equilibrium(model, bone_centres, bone_radius, bone_id, settings, progress,
-                             prepared, start, bone_solids)
-    else:
+    bones = bones or NO_BONES
+    if settings.method not in METHOD_MODULES:
         raise MuscleMSSError(f"solver method {settings.method!r} is not one of "
                              f"{', '.join(METHODS)}")
+    if settings.fibre_shortening:
+        from .fibre_shortening import shortened_springs
+        model = shortened_springs(model)
+        if prepared is not None:
+            prepared = with_rest_state(prepared, model)
+    method = import_module(f".{METHOD_MODULES[settings.method]}", __package__)
+    result = method.solve(model, bones, settings, prepared=prepared, start=start,
+                          progress=progress)
     check_solved(model, result.positions, settings.method,
-                 scene_size(model.positions, model.radius, bone_centres, bone_radius,
-                            bone_solids))
+                 scene_size(model.positions, model.radius, bones))
     tension = None
     if (settings.method == METHOD_QUASI_STATIC and settings.connective_tissue > 0.0
             and settings.quasi_static.springs == SPRINGS_COROTATIONAL):
@@ -57,15 +60,21 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
         tension = spring_tension(model, result.positions)
     result.tissue_share = tissue_share(model, result.positions, settings.connective_tissue,
                                        settings.tissue_along, tension)
+    if bones.solids is not None:
+        from .exact_bone_distance import particles_out_of_bones
+        result.positions, result.collided = particles_out_of_bones(
+            model, bones.solids, result.positions, result.collided)
+    result.bone_contact = bones.contact
     return result
 
 
-def scene_size(positions, radius=None, bone_centres=None, bone_radius=None,
-               bone_solids=None) -> float:
+def scene_size(positions, radius=None, bones: Bones | None = None) -> float:
     """mm: farther than any solve of a valid pose moves a particle from its posed place: the
     diagonal of the box of the posed particles ``positions`` (n, 3) mm and the bone sphere
     centres, plus twice the largest particle ``radius`` and bone sphere radius (the farthest
     one collision response pushes) and the bone solids' reach, plus 1 mm."""
+    bone_centres, bone_radius, _ = (bones or NO_BONES).sphere_arrays
+    bone_solids = (bones or NO_BONES).solids
     points = [np.asarray(p, dtype=np.float64).reshape(-1, 3)
               for p in (positions, bone_centres) if p is not None]
     points = np.concatenate(points) if points else np.zeros((0, 3))

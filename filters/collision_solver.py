@@ -60,13 +60,12 @@ import numpy as np
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
 from muscle_mss.core import quasi_static as Q
-from muscle_mss.core.model import MSSModel, PreparedModel, prepare, with_rest_state
+from muscle_mss.core.model import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, BONE_CONTACTS,
+                                   Bones, MSSModel, PreparedModel, prepare, with_rest_state)
 from muscle_mss.core.solver import solve
 from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError, PoseError
-from muscle_mss.core.exact_bone_distance import particles_out_of_bones
-from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (
     DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE,
     DEFAULT_BVH_MIN_PRIMITIVES, DEFAULT_DISPLACEMENT_THRESHOLD, DEFAULT_DRAG,
@@ -84,8 +83,6 @@ from .model_blocks import MODEL, MODEL_BLOCK, muscle_block
 from .properties import Property
 
 BONES = "PosedBones"
-BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES = "solid", "sphere set"
-BONE_CONTACTS = (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES)
 
 
 def solid_bones(posed_bones) -> BoneSolids:
@@ -94,6 +91,16 @@ def solid_bones(posed_bones) -> BoneSolids:
     spacing only because a shell of spheres needs it to be closed."""
     fields, transforms = bone_solids(posed_bones, BONES)
     return BoneSolids(fields, transforms, np.zeros(len(fields)))
+
+
+def contact_bones(posed_bones, contact: str, spacing: float = DEFAULT_SPACING,
+                  muscle_bone: bool = True) -> Bones:
+    """The posed bones multiblock as the solver's :class:`~muscle_mss.core.model.Bones` for the
+    bone ``contact`` (one of :data:`BONE_CONTACTS`): the sphere sets at ``spacing`` mm, or the
+    solids (none when ``muscle_bone`` is off: nothing would read them)."""
+    if contact != BONE_CONTACT_SOLID:
+        return Bones(spheres=bone_sphere_set(posed_bones, spacing, BONES))
+    return Bones(solids=solid_bones(posed_bones) if muscle_bone else None)
 
 
 class MSSCollisionSolver(MuscleFilter):
@@ -281,6 +288,7 @@ class MSSCollisionSolver(MuscleFilter):
         self._prepared = None
         self._prepared_identity = None
         self._last = None       # (key, posed, solved) of the last quasi-static solve
+        self.solved_bones = None    # the core Bones the last solve used (its bone contact)
         # per model block name: (arrays_identity, checked arrays) of the last update, and the
         # model's arrays other than the coordinates (identities, MSSModel): every time point
         # of a motion brings the same arrays with new coordinates (the Rigid Pose Transform
@@ -298,6 +306,7 @@ class MSSCollisionSolver(MuscleFilter):
             bulk_modulus=self.value("BulkModulus"),
             connective_tissue=self.value("ConnectiveTissue"),
             tissue_along=self.value("TissueAlongFibres"),
+            fibre_shortening=self.value("FibreShortening"),
             contacts=ContactSettings(
                 structure=self.choice("CollisionStructure"),
                 bvh_max_depth=self.value("BVHMaxDepth"),
@@ -354,21 +363,11 @@ class MSSCollisionSolver(MuscleFilter):
 
     def _solve_pose(self, inputs, outputs, blocks, parts, identities, model):
         """:meth:`execute` from the posed ``model`` of the checked ``blocks`` on."""
-        if self.value("FibreShortening"):
-            # the rest lengths follow the pose: the spring layout is prepared for each pose
-            model = shortened_springs(model)
-            identities = None
-        bones, solids = (None, None, None), None
-        if self.choice("BoneContact") != BONE_CONTACT_SOLID:
-            bones = bone_sphere_set(inputs[1], self.value("BoneSphereSpacing"), BONES)
-        elif self.value("MuscleBone"):
-            solids = solid_bones(inputs[1])
-        prepared = self._prepare(model, identities)
-        result = self._solve(model, bones, solids, prepared)
+        bones = contact_bones(inputs[1], self.choice("BoneContact"),
+                              self.value("BoneSphereSpacing"), self.value("MuscleBone"))
+        result = self._solve(model, bones, self._prepare(model, identities))
+        self.solved_bones = bones
         positions, collided = result.positions, result.collided
-        if solids is not None:
-            positions, collided = particles_out_of_bones(model, solids, positions,
-                                                         collided)
         items = []
         depth = bone_depths(positions, inputs[1], BONES)
         for m, ((name, block), part) in enumerate(zip(blocks, parts)):
@@ -417,23 +416,21 @@ class MSSCollisionSolver(MuscleFilter):
                 "Tolerance\n")
         self.progress(1.0)
 
-    def _solve(self, model: MSSModel, bones, solids, prepared: PreparedModel):
-        """The chosen method's solve against the bone spheres ``bones`` (``(centres, radii,
-        bone)`` or Nones) or the bones as solids ``solids``; the quasi-static one warm started
-        from the last solution when the model (topology, rest pose, stiffnesses; the rest
-        lengths may follow the pose) and the properties are unchanged."""
+    def _solve(self, model: MSSModel, bones: Bones, prepared: PreparedModel):
+        """:func:`~muscle_mss.core.solver.solve`; the quasi-static method warm started from the
+        last solution when the model (topology, rest pose, stiffnesses) and the properties are
+        unchanged."""
         progress = lambda f: self.progress(0.05 + 0.9 * f)  # noqa: E731
         settings = self.settings()
         if settings.method != METHOD_QUASI_STATIC:
-            return solve(model, *bones, settings=settings, progress=progress,
-                         prepared=prepared, bone_solids=solids)
+            return solve(model, bones, settings, prepared=prepared, progress=progress)
         key = (self._prepared_shape, repr(settings), self.value("BoneSphereSpacing"),
                self.choice("BoneContact"))
         start = None
         if self.value("WarmStart") and self._last is not None and self._last[0] == key:
             start = model.positions + (self._last[2] - self._last[1])
-        result = solve(model, *bones, settings=settings, progress=progress,
-                       prepared=prepared, start=start, bone_solids=solids)
+        result = solve(model, bones, settings, prepared=prepared, start=start,
+                       progress=progress)
         self._last = (key, np.array(model.positions, dtype=np.float64), result.positions)
         return result
 
@@ -512,7 +509,7 @@ class MSSCollisionSolver(MuscleFilter):
         key = digest.hexdigest()
         if key != self._prepared_key:
             if self._prepared is not None and shape == self._prepared_shape:
-                # only the rest lengths changed (FibreShortening): keep the factorisation
+                # only the rest lengths changed: keep the factorisation
                 self._prepared = with_rest_state(self._prepared, model)
                 self.setup_counts["rest state"] += 1
             else:

@@ -25,7 +25,7 @@ from muscle_mss.core.scene import MOTION_FILE
 
 from . import array_names as A
 from . import vtk_arrays as V
-from .collision_solver import BONE_CONTACT_SOLID, MSSCollisionSolver
+from .collision_solver import BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, MSSCollisionSolver
 from .fibre_resampler import FibreResampler
 from .mvc_surface_deformer import MVCSurfaceDeformer
 from .rigid_pose_transform import RigidPoseTransform
@@ -157,7 +157,6 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     convergence_table = update_at(p.solver, 1, t)
     convergence = V.table_columns(convergence_table)
     converged = int(V.field(convergence_table, A.CONVERGED, 0))
-    bones = update_at(p.pose, 1, t)
     solved = wallclock.perf_counter()
     surfaces = _held(update_at(p.probe, 0, t))
     table = V.table_columns(update_at(p.probe, 1, t))
@@ -165,7 +164,7 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
     seconds = wallclock.perf_counter() - start
 
     blocks = dict(V.blocks(particles, "solved model"))
-    penetration = sphere_overlaps(p.solver, particles, bones)
+    penetration = sphere_overlaps(p.solver, particles)
     fibre_stats = {}
     for name, block in V.blocks(fibres, "deformed fibres"):
         strain = V.cell_array(block, A.FIBRE_STRAIN)
@@ -199,13 +198,12 @@ def solve_time_point(p: Pipeline, index: int) -> TimePointResult:
                            timings)
 
 
-def sphere_overlaps(solver, particles, bones) -> np.ndarray:
+def sphere_overlaps(solver, particles) -> np.ndarray:
     """The deepest overlap (mm) of each muscle's collision spheres in the solved ``particles``
-    with spheres of other muscles and with the posed ``bones`` as ``solver`` (the MSS Collision
-    Solver) saw them: solids or sphere sets (its ``BoneContact``); one value per muscle block."""
+    with spheres of other muscles and with the bones ``solver`` (the MSS Collision Solver) last
+    solved against (its ``solved_bones``: solids or sphere sets); one value per muscle block."""
     from muscle_mss.core.bone_distance import signed_distances
     from muscle_mss.core.penetration import max_penetration_pairs
-    from .bone_sets import bone_solids, bone_sphere_set
     centres, radii, owner, fixed = [], [], [], []
     muscles = V.blocks(particles, "solved model")
     for k, (_, block) in enumerate(muscles):
@@ -216,17 +214,17 @@ def sphere_overlaps(solver, particles, bones) -> np.ndarray:
         owner.append(np.full(sphere.sum(), k))
         fixed.append(V.point_array(block, A.FIXED).astype(bool)[sphere])
     centres, radii, owner, fixed = map(np.concatenate, (centres, radii, owner, fixed))
-    if solver.choice("BoneContact") != BONE_CONTACT_SOLID:
-        bone_centres, bone_radii, _ = bone_sphere_set(bones, solver.value("BoneSphereSpacing"),
-                                                      "posed bones")
+    bones = solver.solved_bones
+    if bones.contact == BONE_CONTACT_SPHERES:
+        bone_centres, bone_radii, _ = bones.spheres
         return max_penetration_pairs(centres, radii, owner, len(muscles), bone_centres,
                                      bone_radii, fixed)
     # the bones as the solver saw them: solids, which a sphere may touch
     penetration = max_penetration_pairs(centres, radii, owner, len(muscles), fixed=fixed)
-    if solver.value("MuscleBone") and (~fixed).any():
-        fields, transforms = bone_solids(bones, "posed bones")
-        depth = radii[~fixed] - signed_distances(fields, centres[~fixed], transforms)[0].min(
-            axis=1)
+    if bones.contact == BONE_CONTACT_SOLID and (~fixed).any():
+        solids = bones.solids
+        depth = radii[~fixed] - signed_distances(solids.fields, centres[~fixed],
+                                                 solids.transforms)[0].min(axis=1)
         np.maximum.at(penetration, owner[~fixed], np.maximum(depth, 0.0))
     return penetration
 

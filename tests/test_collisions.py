@@ -5,7 +5,7 @@ import pytest
 
 from muscle_mss.core import (collision_spheres, contacts, octree_bvh, spatial_hash, solver,
                              sphere_lists)
-from muscle_mss.core.model import MSSModel
+from muscle_mss.core.model import Bones, MSSModel
 from muscle_mss.core.bone_spheres import SPHERES_PER_AREA, bone_spheres, surface_area
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import DEFAULT_PENETRATION_TOLERANCE, STRUCTURES
@@ -28,11 +28,11 @@ def loose_model(positions, radii, muscles, fixed=None, springs=None, rest=None):
         rest, np.full(len(rest), 10.0), np.full(len(rest), 0.5))
 
 
-def one_iteration(model, structure, bones=(None, None, None), projection_passes=0):
+def one_iteration(model, structure, bones=None, projection_passes=0):
     """One iteration: the paper's single response (no final projection unless asked)."""
     settings = paper(iterations=1, structure=structure,
                                      projection_passes=projection_passes)
-    return solver.solve(model, *bones, settings=settings)
+    return solver.solve(model, Bones(bones), settings)
 
 
 @pytest.mark.parametrize("structure", STRUCTURES)
@@ -145,7 +145,7 @@ def test_solid_bone_takes_spheres_out_from_any_depth_in_one_response(structure):
     model = loose_model([[1.0, 2.0, 5.0], [0.0, 0.0, 0.0], [0.0, 0.0, -8.0]], radii,
                         [0, 1, 2], fixed=[False, False, True])
     settings = paper(iterations=1, structure=structure, projection_passes=0)
-    result = solver.solve(model, settings=settings, bone_solids=solids)
+    result = solver.solve(model, Bones(solids=solids), settings)
     depth = reference_signed_distance(*box, result.positions)
     assert depth[0] == pytest.approx(radii[0] + clearance, abs=1e-3)
     np.testing.assert_allclose(result.positions[0], [1.0, 2.0, 10.0 + radii[0] + clearance],
@@ -173,14 +173,14 @@ def test_solid_bone_keeps_out_particles_without_a_sphere_unless_inside_at_rest()
     model.boundary[:] = [True, False, True, False]
     model.in_bone_at_rest = np.array([False, False, True, True])
     settings = paper(iterations=1, projection_passes=0)
-    result = solver.solve(model, settings=settings, bone_solids=solids)
+    result = solver.solve(model, Bones(solids=solids), settings)
     depth = reference_signed_distance(*box, result.positions)
     assert depth[0] == pytest.approx(1.0, abs=1e-3) and depth[1] == pytest.approx(0.0, abs=1e-3)
     np.testing.assert_allclose(result.positions[1], [2.0, -1.0, 10.0], atol=1e-3)
     assert np.array_equal(result.positions[2:], model.positions[2:])
     assert result.collided.tolist() == [True, True, False, False]
     model.in_bone_at_rest = None
-    spheres_only = solver.solve(model, settings=settings, bone_solids=solids)
+    spheres_only = solver.solve(model, Bones(solids=solids), settings)
     assert np.array_equal(spheres_only.positions[0], result.positions[0])
     assert np.array_equal(spheres_only.positions[1:], model.positions[1:])
 
@@ -191,15 +191,13 @@ def test_solid_bones_replace_the_sphere_sets_and_can_be_switched_off():
     solids, _ = box_solid([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0], 0.0)
     model = loose_model([[0.0, 0.0, 20.0]], [1.0], [0])
     far_sphere = (np.array([[0.0, 0.0, 20.5]]), np.array([0.5]), np.array([0]))
-    result = solver.solve(model, *far_sphere, settings=paper(iterations=1),
-                          bone_solids=solids)
+    result = solver.solve(model, Bones(far_sphere, solids), paper(iterations=1))
     assert np.array_equal(result.positions, model.positions) and result.bone_pairs[0] == 0
     inside = loose_model([[0.0, 0.0, 5.0]], [1.0], [0])
-    off = solver.solve(inside, settings=paper(iterations=1, muscle_bone=False),
-                       bone_solids=solids)
+    off = solver.solve(inside, Bones(solids=solids), paper(iterations=1, muscle_bone=False))
     assert np.array_equal(off.positions, inside.positions)
     with pytest.raises(MuscleMSSError, match="one finite 3x4 transform per bone"):
-        solver.solve(inside, bone_solids=type(solids)(solids.fields, np.eye(3, 4), np.zeros(1)))
+        solver.solve(inside, Bones(solids=type(solids)(solids.fields, np.eye(3, 4), np.zeros(1))))
 
 
 def test_projection_passes_are_capped():

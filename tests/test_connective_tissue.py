@@ -68,7 +68,7 @@ def test_quasi_static_matches_scipy_minimiser_of_the_energy_with_tissue():
     ratio = 0.05
     prep = S.prepare(model)
     weight = chain_contact_stiffness(model, prep)
-    result = Q.solve(model, *bone, prepared=prep, settings=settings(    # the isotropic energy
+    result = Q.solve(model, S.Bones(bone), prepared=prep, settings=settings(    # the isotropic energy
         tolerance=1e-9, iterations=5000, projection_passes=0, connective_tissue=ratio,
         tissue_along=1.0))
     assert result.converged and result.collided.any()

@@ -123,7 +123,7 @@ def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     model, bone = chain_on_a_ball()
     prep = S.prepare(model)
     weight = chain_contact_stiffness(model, prep)
-    result = Q.solve(model, *bone, prepared=prep, settings=quasi_static(
+    result = Q.solve(model, S.Bones(bone), prepared=prep, settings=quasi_static(
         tolerance=1e-9, iterations=5000, projection_passes=0))
     assert result.converged and result.residual[-1] < 1e-9
     assert result.collided.any()
@@ -346,7 +346,7 @@ def test_warm_start_also_where_the_fibres_shorten(small_scene):
         solver.SetWarmStart(warm_start)
         for model, bones in poses:
             out, table = filter_solve(solver, model, bones)
-        assert solver.setup_counts["rest state"] == 1
+        assert solver.setup_counts["prepared"] == 1
         assert V.field(table, A.CONVERGED) == 1
         first_step.append(V.table_columns(table)["residual"][0])
     assert first_step[0] != first_step[1]
@@ -402,8 +402,8 @@ def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
     model, box, solids, inside = chain_in_a_box(3.0)
     clearance = solids.clearance[0]
     assert inside.sum() == 8 and not (inside & model.fixed).any()
-    result = Q.solve(model, settings=quasi_static(tolerance=1e-4, iterations=3000),
-                     bone_solids=solids)
+    result = Q.solve(model, S.Bones(solids=solids),
+                     quasi_static(tolerance=1e-4, iterations=3000))
     assert result.converged
     free = ~model.fixed
     depth = reference_signed_distance(*box, result.positions[free])
@@ -427,7 +427,7 @@ def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(mo
         listed_sizes.append((len(self.near[0]), len(self.solid_points)))
 
     monkeypatch.setattr(Q.ContactEnergy, "_refresh_near_solids", recording)
-    listed = Q.solve(model, settings=settings, bone_solids=solids)
+    listed = Q.solve(model, S.Bones(solids=solids), settings)
     assert listed.converged
     assert min(size for size, _ in listed_sizes) < listed_sizes[0][1]   # some were skipped
 
@@ -435,7 +435,7 @@ def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(mo
         arguments[-1][:] = True
 
     monkeypatch.setattr(Q.energy, "near_solids", everything_near)
-    full = Q.solve(model, settings=settings, bone_solids=solids)
+    full = Q.solve(model, S.Bones(solids=solids), settings)
     np.testing.assert_array_equal(listed.positions, full.positions)
     np.testing.assert_array_equal(listed.residual, full.residual)
 
@@ -451,8 +451,8 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
     model, box, solids, inside = chain_in_a_box(1.0)
     clearance = solids.clearance[0]
     assert inside.sum() == 4 and not (inside & model.fixed).any()
-    result = relaxation.solve(model, settings=SolverSettings.build(iterations=300),
-                              bone_solids=solids)
+    result = relaxation.solve(model, S.Bones(solids=solids),
+                              SolverSettings.build(iterations=300))
     slack = DEFAULT_PENETRATION_TOLERANCE
     assert result.bone_pairs[0] > 0 and result.remaining_penetration <= slack
     free = result.positions[~model.fixed]
@@ -468,9 +468,9 @@ def test_solid_bones_are_checked():
     model, _ = chain_on_a_ball()
     fields = bone_field_set([box_mesh([0, 0, 0], [1, 1, 1])])
     with pytest.raises(MuscleMSSError, match="one finite 3x4 transform per bone"):
-        Q.solve(model, bone_solids=BoneSolids(fields, np.eye(3, 4), np.zeros(1)))
+        Q.solve(model, S.Bones(solids=BoneSolids(fields, np.eye(3, 4), np.zeros(1))))
     with pytest.raises(MuscleMSSError, match="clearance"):
-        Q.solve(model, bone_solids=BoneSolids(fields, np.eye(3, 4)[None], -np.ones(1)))
+        Q.solve(model, S.Bones(solids=BoneSolids(fields, np.eye(3, 4)[None], -np.ones(1))))
 
 
 def test_preconditioner_solves_the_spring_matrix_with_tissue_and_volume_stiffness():

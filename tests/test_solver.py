@@ -4,6 +4,7 @@ import pytest
 
 from muscle_mss.core import model as core_model, solver, spatial_hash
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.model import Bones
 from muscle_mss.core.settings import METHOD_RELAXATION, STRUCTURES, SolverSettings
 
 from test_mss import lattice
@@ -41,7 +42,7 @@ def paper(**kw) -> SolverSettings:
 
 def run(pressed, **kw):
     model, bones = pressed
-    return solver.solve(model, *bones, settings=paper(**kw))
+    return solver.solve(model, Bones(bones), paper(**kw))
 
 
 def test_fixed_iterations_give_one_row_each(pressed):
@@ -133,7 +134,7 @@ def test_a_sphere_thrown_out_of_the_scene_stops_before_collision_detection(
     thrown = core_model.MSSModel(**{**model.__dict__, "rest_length": rest})
     with pytest.raises(MuscleMSSError, match=r"muscle 'front' diverged at iteration 1: its mean "
                        rf"particle displacement was {moved} mm"):
-        solver.solve(thrown, *bones, settings=paper(iterations=5,
+        solver.solve(thrown, Bones(bones), paper(iterations=5,
                                                                     structure=structure))
 
 
@@ -187,7 +188,7 @@ def test_the_progress_callback_aborts_the_solve(pressed):
 
     model, bones = pressed
     with pytest.raises(MuscleMSSError, match="stopped by the user"):
-        solver.solve(model, *bones, settings=paper(iterations=10 ** 5),
+        solver.solve(model, Bones(bones), paper(iterations=10 ** 5),
                      progress=progress)
     assert len(calls) == 1 and 0 < calls[0] < 1
 
@@ -203,7 +204,7 @@ def test_bad_settings_are_refused(pressed):
         run(pressed, method="newton")
     with pytest.raises(MuscleMSSError, match="takes no start positions"):
         model, bones = pressed
-        solver.solve(model, *bones, settings=paper(), start=model.positions)
+        solver.solve(model, Bones(bones), paper(), start=model.positions)
 
 
 def test_settings_route_flat_names_to_their_part_and_refuse_unknown_ones():

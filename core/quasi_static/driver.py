@@ -11,14 +11,13 @@ import numpy as np
 
 from ..bone_distance import BoneSolids, push_out_of_bones
 from ..connective_tissue import check_along, tissue_targets
-from ..contacts import (Contacts, bvh_state, collision_spheres, final_passes, hash_state,
-                        solved_state, world_box)
+from ..contacts import collision_spheres, contact_setup, final_passes, solved_state, world_box
 from ..errors import MuscleMSSError, PoseError
-from ..model import MSSModel, PreparedModel, SolveResult, check_history_size, prepare
+from ..model import (NO_BONES, Bones, MSSModel, PreparedModel, SolveResult, check_history_size,
+                     prepare)
 from ..solver import scene_size
-from ..settings import (METHOD_QUASI_STATIC, SPRING_ENERGIES, STRUCTURE_BVH,
+from ..settings import (METHOD_QUASI_STATIC, SPRING_ENERGIES,
                         TERMINATION_BUDGET, TERMINATION_ITERATIONS, SolverSettings)
-from ..solid_contacts import solid_grid, solid_state
 from .energy import ContactEnergy
 from .lbfgs import LBFGSHistory, direction, inner, largest_move, settled
 from .preconditioner import InitialInverseHessian, preconditioner
@@ -137,20 +136,20 @@ def push_out_of_solids(x, points, radius, solids: BoneSolids) -> None:
             x[:, points] += push.T
 
 
-def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
-          settings: SolverSettings | None = None, progress=None,
-          prepared: PreparedModel | None = None, start=None,
-          bone_solids: BoneSolids | None = None) -> QuasiStaticResult:
-    """The static equilibrium of the posed model with contacts (see
+def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings | None = None,
+          *, prepared: PreparedModel | None = None, start=None,
+          progress=None) -> QuasiStaticResult:
+    """The static equilibrium of the posed model with contacts against ``bones`` (see
     :mod:`muscle_mss.core.quasi_static`).
 
-    Arguments as :func:`muscle_mss.core.relaxation.solve`; ``start`` (n, 3) mm, input particle
-    order: the free particles' starting positions (warm start; omitted: the posed ones). Fixed
-    particles stay at their posed positions. ``bone_solids``: the bones as solids for the
-    muscle-bone contacts of the minimisation (the bone spheres then serve the final collision
-    passes only).
+    Arguments as :func:`muscle_mss.core.relaxation.solve`, but ``start`` (n, 3) mm, input
+    particle order: the free particles' starting positions (warm start; None: the posed ones).
+    Fixed particles stay at their posed positions. Against solids the bone spheres, if any,
+    serve the final collision passes only.
     """
     settings = settings or SolverSettings(method=METHOD_QUASI_STATIC)
+    bones = bones or NO_BONES
+    bone_solids = bones.solids
     check_settings(settings)
     if bone_solids is not None:
         bone_solids.check()
@@ -166,11 +165,11 @@ def solve(model: MSSModel, bone_centres=None, bone_radius=None, bone_id=None,
             raise MuscleMSSError(f"the solver's start positions must be {n} finite points; got "
                                  f"shape {begin.shape}")
         x[:, pre.free] = begin[prep.order][pre.free].T
-    spheres, sphere_state = collision_spheres(prep, bone_centres, bone_radius, bone_id)
+    spheres, sphere_state = collision_spheres(prep, *bones.sphere_arrays)
     energy_of = ContactEnergy(model, prep, pre, spheres, settings, x,
                               contact_stiffness(model, prep, pre, settings), bone_solids,
                               tissue_targets(model, prep.order, settings.tissue_along))
-    size = scene_size(model.positions, model.radius, bone_centres, bone_radius, bone_solids)
+    size = scene_size(model.positions, model.radius, bones)
     outcome = _minimise(prep, pre, settings, energy_of, spheres, progress, model.names, size)
     x[:, pre.free] = outcome.position.T
     return _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids, outcome)
@@ -352,11 +351,8 @@ def _finish(prep, settings, x, spheres, sphere_state, energy_of, bone_solids,
     touching_solid = energy_of.solid_deepest > 0.0
     if len(energy_of.solid_points):
         push_out_of_solids(x, energy_of.solid_points, energy_of.solid_radius, bone_solids)
-    use_bvh = settings.contacts.structure == STRUCTURE_BVH
-    hashed, bone_table, lists = hash_state(spheres, not use_bvh)
-    solids = solid_state(bone_solids, x, prep)
-    contacts = Contacts(sphere_state, hashed, bone_table, bvh_state(spheres, settings), solids,
-                        solid_grid(bone_solids))
+    contacts, lists = contact_setup(spheres, sphere_state, settings, bone_solids, x, prep)
+    solids = contacts.solids
     solid_collided = np.zeros(len(solids.points), dtype=np.uint8)
     if len(energy_of.solid_points):     # the same particles, the same order
         solid_collided[:] = touching_solid
