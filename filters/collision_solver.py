@@ -72,15 +72,15 @@ from muscle_mss.core.settings import (
     DEFAULT_FIBRE_SHORTENING, DEFAULT_ITERATIONS,
     DEFAULT_METHOD, DEFAULT_PENETRATION_TOLERANCE, DEFAULT_PROJECTION_PASSES, DEFAULT_SPRINGS,
     DEFAULT_TIME_BUDGET, DEFAULT_TIME_STEP, DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE, METHOD_QUASI_STATIC, METHODS, STRUCTURE_HASH,
-    SPRING_ENERGIES, STRUCTURES, TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS, ContactSettings,
-    QuasiStaticSettings, RelaxationSettings, SolverSettings)
+    SPRING_ENERGIES, STRUCTURES, TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS,
+    SolverSettings)
 
 from . import array_names as A
 from .bone_sets import bone_depths, bone_solids, bone_sphere_set, particles_in_bones
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .model_blocks import MODEL, MODEL_BLOCK, muscle_block
-from .properties import Property
+from .properties import Option, Property
 
 BONES = "PosedBones"
 
@@ -138,14 +138,23 @@ class MSSCollisionSolver(MuscleFilter):
                  "(thousands of iterations). paper relaxation: the paper's explicit iterations "
                  "(mass-spring step, collision response) with the terminations below; its "
                  "shape depends on the iteration cap.",
-                 choices=METHODS, group="Method"),
+                 choices=METHODS, group="Method",
+                 field="method",
+                 option=Option("--method", "solver: paper, the paper's relaxation, or "
+                               "quasi-static, the quasi-static equilibrium (default "
+                               "{default})",
+                               values=tuple((method.split()[0], method) for method in METHODS))),
         Property("Tolerance", "double", DEFAULT_TOLERANCE,
                  "Quasi-static: the solve has converged when no particle moves more than this "
                  "(mm) in one quasi-Newton step, nor (estimated from how fast the steps "
                  "shrink) in all the steps still to come, and no two objects overlap by more than "
                  "PenetrationTolerance. Iterations caps the steps; with Termination 'time "
                  "budget' so does TimeBudget. An unconverged solve prints a warning.",
-                 minimum=0.0, group="Method"),
+                 minimum=0.0, group="Method",
+                 field="quasi_static.tolerance",
+                 option=Option("--tolerance", "quasi-static tolerance: largest particle move "
+                               "of a step, mm (default {default:g})",
+                               what="the largest particle move of its last step")),
         Property("Springs", "enum", DEFAULT_SPRINGS,
                  "Quasi-static: the springs' energy. Hooke: the paper's springs, "
                  "k (|d| - rest length)^2 / 2, as soft across themselves as their stretch "
@@ -159,7 +168,11 @@ class MSSCollisionSolver(MuscleFilter):
                  "ConnectiveTissue 0.1 every time point of both demo motions converges at 20 "
                  "particles per fibre, in 2-4 times fewer iterations, the answer a few mm from "
                  "Hooke's (docs/solver-notes.md).",
-                 choices=SPRING_ENERGIES, group="Method"),
+                 choices=SPRING_ENERGIES, group="Method",
+                 field="quasi_static.springs",
+                 option=Option("--springs", "quasi-static spring energy: the paper's Hooke "
+                               "springs or co-rotational springs, stiff across themselves "
+                               "as well (default {default})", what="its spring energy")),
         Property("WarmStart", "bool", False,
                  "Quasi-static: start from the last solution of this filter (its displacement "
                  "from its posed particles added to the new posed particles) when the model "
@@ -174,37 +187,46 @@ class MSSCollisionSolver(MuscleFilter):
                  "when every muscle's mean particle displacement of an iteration is below "
                  "DisplacementThreshold and no longer rising. time budget: when TimeBudget "
                  "seconds have passed. Iterations caps all three.",
-                 choices=TERMINATIONS, group="Termination"),
+                 choices=TERMINATIONS, group="Termination",
+                 field="termination"),
         Property("Iterations", "int", DEFAULT_ITERATIONS,
                  "Number of iterations (the cap for every termination).",
-                 minimum=1, group="Termination"),
+                 minimum=1, group="Termination",
+                 field="iterations",
+                 option=Option("--iterations", "solver iterations per time point (default "
+                               "{default})")),
         Property("DisplacementThreshold", "double", DEFAULT_DISPLACEMENT_THRESHOLD,
                  "Mean particle displacement of one iteration (mm) below which a muscle counts "
                  "as at rest (termination 'displacement threshold').",
-                 minimum=0.0, group="Termination"),
+                 minimum=0.0, group="Termination",
+                 field="relaxation.displacement_threshold"),
         Property("TimeBudget", "double", DEFAULT_TIME_BUDGET,
                  "Wall-clock seconds for the solve (termination 'time budget').",
-                 minimum=0.0, group="Termination"),
+                 minimum=0.0, group="Termination",
+                 field="time_budget"),
         Property("TimeStep", "double", DEFAULT_TIME_STEP,
                  "Time step of the semi-implicit Euler integration (s). The default is stable "
                  "with margin for the Spring Builder's defaults (stiffness 10 g/s^2, damping "
                  "0.5 g/s, mass 1 g) and lattice-26 springs; lower it for stiffer springs or "
                  "lighter particles (stability needs about dt < 2 sqrt(m / (2 n k)) for n "
                  "springs per particle).",
-                 minimum=1e-9, group="Integration"),
+                 minimum=1e-9, group="Integration",
+                 field="relaxation.time_step"),
         Property("Drag", "double", DEFAULT_DRAG,
                  "Viscous drag on every particle's velocity (1/s): the force -Drag m v, taken "
                  "implicitly so that it is stable at any strength. It makes the relaxation settle "
                  "(the springs' own damping is explicit and must stay small to be stable); 0 "
                  "turns it off (the paper's plain mass-spring system).",
-                 minimum=0.0, group="Integration"),
+                 minimum=0.0, group="Integration",
+                 field="relaxation.drag"),
         Property("BulkModulus", "double", DEFAULT_BULK_MODULUS,
                  "Resistance of each muscle to a change of its volume (g/(mm s^2), a pressure): "
                  "the boundary particles' cage (the one that carries the surface) is pushed "
                  "outwards by -BulkModulus (V / V_rest - 1) per unit of its area. Muscle is "
                  "nearly incompressible, a spring lattice is not: without it a stretched lattice "
                  "narrows and loses volume. 0 turns it off (the paper's springs only).",
-                 minimum=0.0, group="Integration"),
+                 minimum=0.0, group="Integration",
+                 field="bulk_modulus"),
         Property("ConnectiveTissue", "double", DEFAULT_CONNECTIVE_TISSUE,
                  "The connective tissue (epimysium, septa, fascia) that ties every muscle to "
                  "the tissue around it, which moves with the skeleton: each free particle is "
@@ -216,7 +238,12 @@ class MSSCollisionSolver(MuscleFilter):
                  "the shape does not depend on the iteration cap. Both methods; 0 is the "
                  "paper's model (muscles free between their tendons). The default 0.1 is the "
                  "ratio at which both demo motions converge everywhere.",
-                 minimum=0.0, group="Integration"),
+                 minimum=0.0, group="Integration",
+                 field="connective_tissue",
+                 option=Option("--connective-tissue", "connective tissue holding each free "
+                               "particle toward its posed position, as a ratio to the "
+                               "springs' stiffness; 0: the paper's model (default "
+                               "{default:g})")),
         Property("TissueAlongFibres", "double", DEFAULT_TISSUE_ALONG,
                  "The connective tissue's stiffness along each particle's fibre (its direction "
                  "at the posed particles) as a fraction of its stiffness across: below 1 a "
@@ -225,7 +252,11 @@ class MSSCollisionSolver(MuscleFilter):
                  "the particle's displacement from its posed position, f its fibre direction). "
                  "1: the same in every direction. The default 0.1 lets the flexors of the "
                  "elbow demo follow their muscles' shortening (with FibreShortening).",
-                 minimum=0.0, maximum=1.0, group="Integration"),
+                 minimum=0.0, maximum=1.0, group="Integration",
+                 field="tissue_along",
+                 option=Option("--tissue-along", "the connective tissue's stiffness along the "
+                               "fibres as a fraction of that across, 0 to 1; 1: isotropic "
+                               "(default {default:g})")),
         Property("FibreShortening", "bool", DEFAULT_FIBRE_SHORTENING,
                  "Fibres that shorten with their muscle: when a fibre's ends come closer than "
                  "at rest (by the factor s), the springs' rest lengths along it follow (times "
@@ -235,34 +266,44 @@ class MSSCollisionSolver(MuscleFilter):
                  "shape shortened so, not toward its bent posed pose. Lengthening fibres "
                  "stretch as before. Both methods. On by default; off: the paper's springs "
                  "(core/fibre_shortening.py).",
-                 group="Integration"),
+                 group="Integration", field="fibre_shortening",
+                 option=Option("--fibre-shortening", "fibres shorten with their muscle "
+                               "instead of folding (the solver's FibreShortening; "
+                               "default {default})")),
         Property("CollisionStructure", "enum", STRUCTURE_HASH,
                  "How colliding spheres are found. spatial hash: a uniform grid with candidate "
                  "lists, parallel (the fast default). octree BVH: the paper's per-object octree "
                  "of bounding boxes, refitted and lazily subdivided, on one thread. Both find "
                  "the same pairs.",
-                 choices=STRUCTURES, group="Collisions"),
+                 choices=STRUCTURES, group="Collisions",
+                 field="contacts.structure"),
         Property("BVHMaxDepth", "int", DEFAULT_BVH_MAX_DEPTH,
                  "Octree BVH: deepest subdivision level (the paper's 8).",
-                 minimum=1, maximum=20, group="Collisions"),
+                 minimum=1, maximum=20, group="Collisions",
+                 field="contacts.bvh_max_depth"),
         Property("BVHMinPrimitives", "int", DEFAULT_BVH_MIN_PRIMITIVES,
                  "Octree BVH: a node with this many spheres or fewer is not subdivided (the "
-                 "paper's 10).", minimum=1, group="Collisions"),
+                 "paper's 10).", minimum=1, group="Collisions",
+                 field="contacts.bvh_min_primitives"),
         Property("MuscleMuscle", "bool", True,
-                 "Handle collisions between spheres of different muscles.", group="Collisions"),
+                 "Handle collisions between spheres of different muscles.", group="Collisions",
+                 field="contacts.muscle_muscle"),
         Property("MuscleBone", "bool", True,
                  "Handle collisions between muscle spheres and bone spheres.",
-                 group="Collisions"),
+                 group="Collisions",
+                 field="contacts.muscle_bone"),
         Property("ProjectionPasses", "int", DEFAULT_PROJECTION_PASSES,
                  "Collision passes (detection and response, no spring update) after the last "
                  "iteration, until no two spheres of different objects overlap by more than "
                  "PenetrationTolerance. A sphere pressed between two objects keeps half its "
                  "overlap after one response, and the springs push it back in every iteration; "
                  "these passes remove what is left. 0 turns them off (the paper's loop).",
-                 minimum=0, group="Collisions"),
+                 minimum=0, group="Collisions",
+                 field="contacts.projection_passes"),
         Property("PenetrationTolerance", "double", DEFAULT_PENETRATION_TOLERANCE,
                  "Deepest overlap (mm) of two spheres of different objects at which the final "
-                 "collision passes stop.", minimum=0.0, group="Collisions"),
+                 "collision passes stop.", minimum=0.0, group="Collisions",
+                 field="contacts.penetration_tolerance"),
         Property("BoneContact", "enum", BONE_CONTACT_SOLID,
                  "How the bones push muscle spheres (both methods, iterations and final "
                  "collision passes). solid (the default, and the faster): each bone is a solid "
@@ -299,26 +340,12 @@ class MSSCollisionSolver(MuscleFilter):
         self.setup_counts = {"checked": 0, "remembered": 0, "prepared": 0, "rest state": 0}
 
     def settings(self) -> SolverSettings:
-        """The properties as the core's :class:`~muscle_mss.core.settings.SolverSettings`."""
-        return SolverSettings(
-            method=self.choice("Method"), termination=self.choice("Termination"),
-            iterations=self.value("Iterations"), time_budget=self.value("TimeBudget"),
-            bulk_modulus=self.value("BulkModulus"),
-            connective_tissue=self.value("ConnectiveTissue"),
-            tissue_along=self.value("TissueAlongFibres"),
-            fibre_shortening=self.value("FibreShortening"),
-            contacts=ContactSettings(
-                structure=self.choice("CollisionStructure"),
-                bvh_max_depth=self.value("BVHMaxDepth"),
-                bvh_min_primitives=self.value("BVHMinPrimitives"),
-                muscle_muscle=self.value("MuscleMuscle"), muscle_bone=self.value("MuscleBone"),
-                projection_passes=self.value("ProjectionPasses"),
-                penetration_tolerance=self.value("PenetrationTolerance")),
-            relaxation=RelaxationSettings(
-                displacement_threshold=self.value("DisplacementThreshold"),
-                time_step=self.value("TimeStep"), drag=self.value("Drag")),
-            quasi_static=QuasiStaticSettings(tolerance=self.value("Tolerance"),
-                                             springs=self.choice("Springs")))
+        """The properties as the core's :class:`~muscle_mss.core.settings.SolverSettings`: each
+        row with a ``field`` gives that field its value (an enum its choice's text)."""
+        return SolverSettings.build(**{
+            prop.field.rpartition(".")[2]:
+                self.choice(prop.name) if prop.kind == "enum" else self.value(prop.name)
+            for prop in self.PROPERTIES if prop.field})
 
     def ignored_settings(self) -> list:
         """Warnings for properties set away from their default that the other properties make

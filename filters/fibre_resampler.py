@@ -39,7 +39,7 @@ from muscle_mss.core.validation import far_point_problem, fibre_midpoints
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
-from .properties import Property
+from .properties import Option, Property
 
 DEFAULT_PARTICLES_PER_FIBRE = 20
 """N, the paper's coarsest resolution (its experiments use 20, 40, 60 and 80)."""
@@ -140,7 +140,9 @@ class FibreResampler(MuscleFilter):
         Property("ParticlesPerFibre", "int", DEFAULT_PARTICLES_PER_FIBRE,
                  "Particles per fibre N, both fixed end particles included (at least 2). The "
                  "paper's experiments use 20, 40, 60 and 80.",
-                 minimum=2, group="Sampling"),
+                 minimum=2, group="Sampling",
+                 option=Option("--resolution", "particles per fibre N (default {default})",
+                               study=True)),
         Property("Randomise", "bool", True,
                  "Place each free particle at a uniformly random arc-length place inside its own "
                  "one of the N-1 equal intervals (on), or at the interval end points (off). "

@@ -3,8 +3,12 @@
 A filter lists its :class:`Property` objects in ``PROPERTIES``. From that one table
 :class:`muscle_mss.filters.base.MuscleFilter` generates the ``SetX`` / ``GetX`` methods used in
 plain VTK, and ``muscle_mss.plugin`` generates the ParaView declarations (name, default, range,
-enumeration, tooltip, panel group). The ``name`` is the ParaView property name, the Python
-attribute in ``paraview.simple`` and the key in state files: never rename one casually.
+enumeration, tooltip, panel group). A row may also name the core setting it fills (``field``, a
+:class:`~muscle_mss.core.settings.SolverSettings` field: the filter's ``settings()`` is built
+from these) and its command-line :class:`Option` (``muscle-mss run`` / ``demo`` and the batch:
+:mod:`muscle_mss.filters.run_options` builds the options from these), so that a new setting is
+one row plus its use. The ``name`` is the ParaView property name, the Python attribute in
+``paraview.simple`` and the key in state files: never rename one casually.
 """
 from __future__ import annotations
 
@@ -17,6 +21,30 @@ KINDS = ("int", "double", "bool", "enum")
 
 
 @dataclass(frozen=True)
+class Option:
+    """The command-line option that sets a property in a run (``muscle-mss run`` / ``demo``, the
+    batch). ``flag`` (``--connective-tissue``; its ``argparse`` destination
+    ``connective_tissue``); ``help``, in which ``{default}`` stands for the property's default
+    as the option writes it (an enum's text, ``on`` / ``off`` for a bool); ``values`` maps the
+    option's values to the property's choices where they differ (``--method paper``), else the
+    choices are the values; ``study``: whether a study (which runs every layout with the
+    filters' defaults) takes it; ``what``: what the setting is to the one method that reads it
+    (a field of a method's part of the settings), for the refusal of the option under the
+    other method."""
+
+    flag: str
+    help: str
+    values: tuple = ()
+    study: bool = False
+    what: str = ""
+
+    @property
+    def dest(self) -> str:
+        """The ``argparse`` attribute of the option."""
+        return self.flag.lstrip("-").replace("-", "_")
+
+
+@dataclass(frozen=True)
 class Property:
     """A filter property.
 
@@ -24,6 +52,9 @@ class Property:
     its choice (ParaView stores the int) and accepts the choice's text in ``SetX``.
     ``minimum`` / ``maximum`` bound int and double values (inclusive, None = unbounded).
     ``doc`` becomes the tooltip and the setter's docstring; ``group`` the panel group.
+    ``field``: the :class:`~muscle_mss.core.settings.SolverSettings` field the property sets
+    (its part first: ``contacts.structure``; enums give their choice's text); ``option``: its
+    command-line :class:`Option`, if a run takes it.
     """
 
     name: str
@@ -34,6 +65,8 @@ class Property:
     maximum: float | None = None
     choices: tuple = ()
     group: str = ""
+    field: str = ""
+    option: Option | None = None
 
     def __post_init__(self):
         if self.kind not in KINDS:

@@ -1,94 +1,104 @@
 """The options of a motion run, shared by ``muscle-mss demo`` / ``muscle-mss run`` and the
 pvpython/pvbatch entry point ``muscle_mss.plugin.batch``.
 
-Every choice and default comes from where the filters take it (DESIGN §2: one definition): the
-layouts from the Spring Builder, the particles per fibre from the Fibre Resampler, the methods,
-iterations and tolerance from :mod:`muscle_mss.core.settings`, the series and compressors from
+The options that set a filter property are the filters' property rows that carry an
+:class:`~muscle_mss.filters.properties.Option` (flag, help, values), in pipeline order (DESIGN
+§2: one definition): a new one is one row; the series and compressors come from
 :mod:`muscle_mss.filters.run_output`.
 """
 from __future__ import annotations
 
 import argparse
+import importlib
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_SHORTENING,
-                                      DEFAULT_ITERATIONS, DEFAULT_METHOD, DEFAULT_SPRINGS,
-                                      DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
-                                      METHOD_QUASI_STATIC, METHOD_RELAXATION, METHODS,
-                                      SPRING_ENERGIES)
+from muscle_mss.core.settings import METHOD_QUASI_STATIC, METHOD_RELAXATION
 
-from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
+from . import EXPORTS, FILTER_NAMES
 from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
-from .spring_builder import DEFAULT_LAYOUT, LAYOUTS
 
-METHOD_OPTIONS = {method.split()[0]: method for method in METHODS}
-"""``--method`` values: each of the solver's methods by its first word (``paper`` for
-``paper relaxation``)."""
+OPTIONS_AFTER = ("--write", "--compressor")
+"""The run's own options, after the filters' (``--write`` a study does not take either)."""
+
+METHOD_OF_PART = {"quasi_static": METHOD_QUASI_STATIC, "relaxation": METHOD_RELAXATION}
+"""The method that alone reads each method's part of the solver's settings
+(:class:`~muscle_mss.core.settings.SolverSettings`)."""
 
 
-def method_option(method: str) -> str:
-    """The ``--method`` value of one of the solver's :data:`~muscle_mss.core.settings.METHODS`."""
-    return next(option for option, name in METHOD_OPTIONS.items() if name == method)
+def run_properties() -> tuple:
+    """The property rows that are run options, of every filter in pipeline order."""
+    rows = []
+    for name in FILTER_NAMES:
+        module = importlib.import_module(f"muscle_mss.filters.{EXPORTS[name]}")
+        rows += [prop for prop in getattr(module, name).PROPERTIES if prop.option]
+    return tuple(rows)
+
+
+def _shown(prop, value) -> str:
+    """A property value as its option writes it."""
+    if prop.kind == "bool":
+        return "on" if value else "off"
+    return next((shown for shown, choice in prop.option.values if choice == value), value)
+
+
+def _method_reading(prop) -> str | None:
+    """The one method that reads the property's settings field (the field sits in that
+    method's part of :class:`~muscle_mss.core.settings.SolverSettings`), or None."""
+    part, dot, _ = prop.field.partition(".")
+    return METHOD_OF_PART.get(part) if dot else None
 
 
 def add_run_options(p) -> None:
-    """The options that set up a run (``argparse`` parser ``p``): what the filters compute
-    (``--resolution``, ``--layout``, ``--iterations``, ``--method``, ``--tolerance``,
-    ``--springs``, ``--connective-tissue``, ``--tissue-along``, ``--[no-]fibre-shortening``) and
-    what is written, and how (``--write``, ``--compressor``)."""
-    p.add_argument("--resolution", type=int,
-                   help=f"particles per fibre N (default {DEFAULT_PARTICLES_PER_FIBRE})")
-    p.add_argument("--layout", choices=LAYOUTS, help=f"spring layout (default {DEFAULT_LAYOUT})")
-    p.add_argument("--iterations", type=int,
-                   help=f"solver iterations per time point (default {DEFAULT_ITERATIONS})")
+    """The options that set up a run (``argparse`` parser ``p``): what the filters compute (the
+    filters' property rows with an option: ``--resolution``, ``--layout``, ``--method``, ...)
+    and what is written, and how (``--write``, ``--compressor``)."""
+    for prop in run_properties():
+        option = prop.option
+        text = option.help.format(default=_shown(prop, prop.default))
+        if prop.kind == "bool":
+            p.add_argument(option.flag, action=argparse.BooleanOptionalAction, default=None,
+                           help=text)
+        elif prop.kind == "enum":
+            values = tuple(shown for shown, _ in option.values) or prop.choices
+            p.add_argument(option.flag, choices=values, help=text)
+        else:
+            p.add_argument(option.flag, type=int if prop.kind == "int" else float, help=text)
     p.add_argument("--write", help=f"series to write, comma-separated: {','.join(SERIES)} "
                                    "(default all)")
     p.add_argument("--compressor", choices=COMPRESSORS, default=DEFAULT_COMPRESSOR,
                    help=f"compressor of the series' binary data (default {DEFAULT_COMPRESSOR}: "
                         "fast)")
-    p.add_argument("--method", choices=tuple(METHOD_OPTIONS),
-                   help=f"solver: {method_option(METHOD_RELAXATION)}, the paper's relaxation, or "
-                        f"{method_option(METHOD_QUASI_STATIC)}, the quasi-static equilibrium "
-                        f"(default {method_option(DEFAULT_METHOD)})")
-    p.add_argument("--tolerance", type=float,
-                   help="quasi-static tolerance: largest particle move of a step, mm "
-                        f"(default {DEFAULT_TOLERANCE:g})")
-    p.add_argument("--springs", choices=SPRING_ENERGIES,
-                   help="quasi-static spring energy: the paper's Hooke springs or co-rotational "
-                        f"springs, stiff across themselves as well (default {DEFAULT_SPRINGS})")
-    p.add_argument("--connective-tissue", type=float,
-                   help="connective tissue holding each free particle toward its posed position, "
-                        "as a ratio to the springs' stiffness; 0: the paper's model "
-                        f"(default {DEFAULT_CONNECTIVE_TISSUE:g})")
-    p.add_argument("--tissue-along", type=float,
-                   help="the connective tissue's stiffness along the fibres as a fraction of "
-                        f"that across, 0 to 1; 1: isotropic (default {DEFAULT_TISSUE_ALONG:g})")
-    p.add_argument("--fibre-shortening", action=argparse.BooleanOptionalAction, default=None,
-                   help="fibres shorten with their muscle instead of folding (the solver's "
-                        "FibreShortening; default "
-                        f"{'on' if DEFAULT_FIBRE_SHORTENING else 'off'})")
 
 
 def settings_from(args) -> dict:
     """Filter property settings from the options that were given; :class:`MuscleMSSError` for
     an option that the chosen method would ignore."""
-    method = METHOD_OPTIONS.get(args.method) or DEFAULT_METHOD
-    for option, value, what in (
-            ("--tolerance", args.tolerance, "the largest particle move of its last step"),
-            ("--springs", args.springs, "its spring energy")):
-        if value is not None and method != METHOD_QUASI_STATIC:
-            raise MuscleMSSError(
-                f"{option} {value} applies only to --method "
-                f"{method_option(METHOD_QUASI_STATIC)} ({what}); --method "
-                f"{method_option(method)} runs --iterations iterations and would ignore it: "
-                f"drop {option} or add --method {method_option(METHOD_QUASI_STATIC)}")
-    pairs = (("ParticlesPerFibre", args.resolution), ("Layout", args.layout),
-             ("Iterations", args.iterations), ("Method", METHOD_OPTIONS.get(args.method)),
-             ("Tolerance", args.tolerance), ("Springs", args.springs),
-             ("ConnectiveTissue", args.connective_tissue),
-             ("TissueAlongFibres", args.tissue_along),
-             ("FibreShortening", args.fibre_shortening))
-    return {name: value for name, value in pairs if value is not None}
+    rows = run_properties()
+    given = {prop: getattr(args, prop.option.dest) for prop in rows}
+    values = {prop: dict(prop.option.values).get(value, value)
+              for prop, value in given.items() if value is not None}
+    method_row = next(prop for prop in rows if prop.field == "method")
+    method = values.get(method_row, method_row.default)
+    for prop, value in given.items():
+        only = _method_reading(prop)
+        if value is None or only is None or only == method:
+            continue
+        runs = ("runs --iterations iterations and would ignore it"
+                if method == METHOD_RELAXATION else "would ignore it")
+        raise MuscleMSSError(
+            f"{prop.option.flag} {value} applies only to --method {_shown(method_row, only)} "
+            f"({prop.option.what}); --method {_shown(method_row, method)} {runs}: drop "
+            f"{prop.option.flag} or add --method {_shown(method_row, only)}")
+    return {prop.name: value for prop, value in values.items()}
+
+
+def study_ignored(args) -> list:
+    """The options given that a study does not take (it runs every layout with the filters'
+    defaults), as flags."""
+    flags = [prop.option.flag for prop in run_properties() if not prop.option.study
+             and getattr(args, prop.option.dest) is not None]
+    return flags + [flag for flag in OPTIONS_AFTER[:1]
+                    if getattr(args, flag.lstrip("-")) is not None]
 
 
 def writing_from(args) -> Writing:

@@ -44,7 +44,7 @@ from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .bone_sets import clear_of_bones
-from .properties import Property
+from .properties import Option, Property
 
 LAYOUT_LATTICE_6, LAYOUT_LATTICE_26 = "lattice-6", "lattice-26"
 LAYOUT_DELAUNAY, LAYOUT_KNN = "Delaunay", "k-NN"
@@ -229,7 +229,8 @@ class SpringBuilder(MuscleFilter):
                  "fibre (the whole tetrahedralisation fills the particles' convex hull and joins "
                  "a curved muscle across its bend). k-NN: each "
                  "particle to its NeighbourCount nearest particles.",
-                 choices=LAYOUTS, group="Springs"),
+                 choices=LAYOUTS, group="Springs",
+                 option=Option("--layout", "spring layout (default {default})")),
         Property("NeighbourCount", "int", 15,
                  "k of the k-NN layout: springs from each particle to its k nearest particles of "
                  "the same muscle (every particle gets at least k springs, or all others in a "

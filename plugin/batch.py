@@ -42,17 +42,12 @@ def parse_args(argv):
     return parser.parse_args(argv)
 
 
-STUDY_IGNORES = ("layout", "iterations", "method", "tolerance", "springs", "connective_tissue",
-                 "tissue_along", "fibre_shortening", "write")
-"""Run options a study does not take (it runs every layout, the filters' defaults)."""
-
-
 def _study(args, size) -> int:
     """``--study``: the report of :mod:`muscle_mss.filters.study`, in this one process."""
     from muscle_mss.core.errors import MuscleMSSError
     from muscle_mss.filters.cli import held_output_folder, study_into
-    ignored = [f"--{name.replace('_', '-')}" for name in STUDY_IGNORES
-               if getattr(args, name) is not None]
+    from muscle_mss.filters.run_options import study_ignored
+    ignored = study_ignored(args)
     problem = ("the study runs in one process: start it with pvpython, not under mpiexec"
                if size > 1 else f"{', '.join(ignored)} do not apply to --study (it runs "
                "every layout with the filters' defaults): drop them" if ignored else None)
