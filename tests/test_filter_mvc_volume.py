@@ -346,6 +346,7 @@ def test_volumes_agree_with_vtk_mass_properties_and_the_table():
     assert list(table) == [A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
                            A.NEW_IN_BONE_VERTICES, A.NEW_IN_BONE_DEPTH_MM,
                            A.NEW_IN_BONE_VERTICES_AFTER, A.NEW_IN_BONE_DEPTH_AFTER_MM,
+                           A.IN_OTHER_MUSCLE_VERTICES, A.IN_OTHER_MUSCLE_DEPTH_MM,
                            A.CAGE_DRIFT_VERTICES, A.CAGE_DRIFT_MM]
     assert table[A.MUSCLE] == ["vastus", "gracilis", "mean"]
     rest = dict(V.blocks(surfaces))
