@@ -38,8 +38,8 @@ from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.solid_contacts import solid_points
 from muscle_mss.core.settings import METHOD_RELAXATION, SolverSettings
-from muscle_mss.filters.collision_solver import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES,
-                                                 solid_bones)
+from muscle_mss.filters.bone_sets import solid_bones
+from muscle_mss.filters.collision_solver import BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES
 from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
 from muscle_mss.filters.scene_io import write_scene
 

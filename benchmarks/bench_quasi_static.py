@@ -47,7 +47,8 @@ from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_S
                                       SolverSettings)
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
-from muscle_mss.filters.collision_solver import MSSCollisionSolver, solid_bones
+from muscle_mss.filters.bone_sets import solid_bones
+from muscle_mss.filters.collision_solver import MSSCollisionSolver
 from muscle_mss.filters.model_blocks import muscle_block
 from muscle_mss.filters.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene

@@ -24,7 +24,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from muscle_mss.core.bone_distance import BoneFieldSet, signed_distances
+from muscle_mss.core.bone_distance import BoneFieldSet, BoneSolids, signed_distances
 from muscle_mss.core.bone_field_sampling import bone_distance_field
 from muscle_mss.core.exact_bone_distance import exact_signed_distances
 from muscle_mss.core.triangle_distance import (PreparedSurface, inside_surface,
@@ -32,6 +32,7 @@ from muscle_mss.core.triangle_distance import (PreparedSurface, inside_surface,
 from muscle_mss.core import field_store
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
+from muscle_mss.core.model import BONE_CONTACT_SOLID, Bones
 from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
 from muscle_mss.core.rigid_fit import rigid_fit
 
@@ -294,3 +295,25 @@ def clear_of_bones(centres, radii, bones, where: str = "bones"):
                                  field.error_bound, where=block_where)
     radii[inside] = 0.0
     return radii, inside
+
+
+POSED_BONES = "PosedBones"
+"""The MSS Collision Solver's bones input, named in the messages about its blocks."""
+
+
+def solid_bones(posed_bones) -> BoneSolids:
+    """The posed bones multiblock as solids for the solvers' contacts. A muscle sphere may
+    touch a solid bone (clearance 0): the sphere sets' radius thickens the bones by the
+    spacing only because a shell of spheres needs it to be closed."""
+    fields, transforms = bone_solids(posed_bones, POSED_BONES)
+    return BoneSolids(fields, transforms, np.zeros(len(fields)))
+
+
+def contact_bones(posed_bones, contact: str, spacing: float = DEFAULT_SPACING,
+                  muscle_bone: bool = True) -> Bones:
+    """The posed bones multiblock as the solver's :class:`~muscle_mss.core.model.Bones` for the
+    bone ``contact`` (one of :data:`~muscle_mss.core.model.BONE_CONTACTS`): the sphere sets at
+    ``spacing`` mm, or the solids (none when ``muscle_bone`` is off: nothing would read them)."""
+    if contact != BONE_CONTACT_SOLID:
+        return Bones(spheres=bone_sphere_set(posed_bones, spacing, POSED_BONES))
+    return Bones(solids=solid_bones(posed_bones) if muscle_bone else None)

@@ -25,30 +25,14 @@ response, of the pairs it can resolve: not a fixed tendon sphere against its bon
 Two methods (property ``Method``): ``quasi-static`` (the default,
 :mod:`muscle_mss.core.quasi_static`) solves for the static equilibrium of the model, its
 connective tissue and contacts to ``Tolerance`` (mm, the largest particle move of a
-quasi-Newton step); ``paper relaxation`` (:mod:`muscle_mss.core.relaxation`) runs the paper's
-explicit iterations. With the defaults (co-rotational springs, ``ConnectiveTissue`` 0.1,
-``TissueAlongFibres`` 0.1, ``FibreShortening``) every time point of both demo motions converges
-at N = 20 in 90-500 iterations, 1-5 s a pose on two cores (``docs/solver-notes.md``). The
-quasi-static table adds a ``residual`` column (mm, per iteration); both tables carry field data
-``method`` and ``converged`` (1 when the quasi-static residual fell below the tolerance with no overlap
-above ``PenetrationTolerance``, or when the paper's displacement threshold fired). An
-unconverged quasi-static solve prints a warning (ParaView's output messages). Every solve starts
-from the posed state, so a time point's answer does not depend on the times solved before it
-(slider jumps, ``--time``, MPI ranks, a reopened state file); with ``WarmStart`` on, the filter
-keeps its last quasi-static solution and, asked for another pose of the same model with the
-same properties, starts from the posed particles plus the last solution's displacement from its
-own posed particles (faster along a motion, but the answer then depends on the order). Bones
-(``BoneContact``, both methods, the iterations and the final collision passes): as solids by
-default (:func:`solid_bones`: each bone's signed distance field, sampled once per bone shape by
-:func:`~muscle_mss.filters.bone_sets.bone_solids`; a muscle sphere is pushed out along the
-distance gradient from any depth; after the solve a free particle centre still inside a bone
-by the bones' triangles, which the fields miss next to thin bones, is put on its surface:
-:func:`~muscle_mss.core.exact_bone_distance.particles_out_of_bones`), or as the paper's sphere
-sets (a sphere carried past a bone's shell of spheres is pushed on through it; the Table 1
-baseline). The solids are the default because they are also the faster
-(``benchmarks/results/bone_contact.md``). ``FibreShortening`` makes the springs' rest lengths
-follow fibres that shorten, and the tissue's target a muscle that shortens
-(:mod:`muscle_mss.core.fibre_shortening`).
+quasi-Newton step; its table adds a ``residual`` column); ``paper relaxation``
+(:mod:`muscle_mss.core.relaxation`) runs the paper's explicit iterations. Both tables carry
+field data ``method`` and ``converged``; an unconverged solve prints a warning. Every solve
+starts from the posed state, so a time point's answer does not depend on the times solved
+before it (``WarmStart`` trades that for speed). The whole stage, fibre shortening and the bone
+contact (``BoneContact``: solids by default, or the paper's sphere sets) included, is one call
+of :func:`muscle_mss.core.solver.solve`; this filter converts VTK to arrays and back, and keeps
+what a later pose of the same model can reuse.
 """
 from __future__ import annotations
 
@@ -63,7 +47,6 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.model import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, BONE_CONTACTS,
                                    Bones, MSSModel, PreparedModel, prepare, with_rest_state)
 from muscle_mss.core.solver import solve
-from muscle_mss.core.bone_distance import BoneSolids
 from muscle_mss.core.bone_spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError, PoseError
 from muscle_mss.core.settings import (
@@ -76,31 +59,12 @@ from muscle_mss.core.settings import (
     SolverSettings)
 
 from . import array_names as A
-from .bone_sets import bone_depths, bone_solids, bone_sphere_set, particles_in_bones
+from .bone_sets import POSED_BONES as BONES, bone_depths, contact_bones, particles_in_bones
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .model_blocks import MODEL, MODEL_BLOCK, muscle_block
 from .properties import Option, Property
 
-BONES = "PosedBones"
-
-
-def solid_bones(posed_bones) -> BoneSolids:
-    """The posed bones multiblock as solids for the solvers' contacts. A muscle sphere may
-    touch a solid bone (clearance 0): the sphere sets' radius thickens the bones by the
-    spacing only because a shell of spheres needs it to be closed."""
-    fields, transforms = bone_solids(posed_bones, BONES)
-    return BoneSolids(fields, transforms, np.zeros(len(fields)))
-
-
-def contact_bones(posed_bones, contact: str, spacing: float = DEFAULT_SPACING,
-                  muscle_bone: bool = True) -> Bones:
-    """The posed bones multiblock as the solver's :class:`~muscle_mss.core.model.Bones` for the
-    bone ``contact`` (one of :data:`BONE_CONTACTS`): the sphere sets at ``spacing`` mm, or the
-    solids (none when ``muscle_bone`` is off: nothing would read them)."""
-    if contact != BONE_CONTACT_SOLID:
-        return Bones(spheres=bone_sphere_set(posed_bones, spacing, BONES))
-    return Bones(solids=solid_bones(posed_bones) if muscle_bone else None)
 
 
 class MSSCollisionSolver(MuscleFilter):
