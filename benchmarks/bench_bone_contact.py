@@ -5,7 +5,7 @@
    paper relaxation, spatial hash) at N = 20 and 80, at the walking pose (a third into the
    motion, as Table 1) and at the most flexed pose: seconds of the whole solve (the median of
    three) and of its muscle-bone contacts, for the sphere sets, for the solids (each bone's
-   signed distance field, core/bone_distance.py) against the spheres only (the same work as
+   signed distance field, core/bones/distance.py) against the spheres only (the same work as
    the sphere sets) and for the solids against every free particle not inside a bone at rest
    (the default); and the one-off sampling of each representation (once per bone shape: both
    are cached and moved with the bone).
@@ -30,13 +30,13 @@ import time
 import numpy as np
 
 from muscle_mss.core import solver as S
-from muscle_mss.core.bone_field_sampling import bone_distance_field
-from muscle_mss.core.bone_spheres import bone_spheres
-from muscle_mss.core.demo_arm import demo_arm_scene
-from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.bones.field_sampling import bone_distance_field
+from muscle_mss.core.bones.spheres import bone_spheres
+from muscle_mss.core.demo.arm import demo_arm_scene
+from muscle_mss.core.demo.scene import demo_scene
 from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.motion import farthest_pose_index
-from muscle_mss.core.solid_contacts import solid_points
+from muscle_mss.core.contacts.solid_contacts import solid_points
 from muscle_mss.core.settings import METHOD_RELAXATION, SolverSettings
 from muscle_mss.filters.bone_sets import solid_bones
 from muscle_mss.filters.collision_solver import BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES

@@ -1,4 +1,4 @@
-"""Benchmark of the bones' signed distance fields (core/bone_distance.py) on the full demo thigh.
+"""Benchmark of the bones' signed distance fields (core/bones/distance.py) on the full demo thigh.
 
 For each bone of ``demo_scene(size="full")`` (pelvis, femur, tibia): triangles, the sampled box,
 fine bricks kept, build seconds, memory of the sampled values and the memory a dense grid of the
@@ -20,9 +20,9 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from muscle_mss.core import bone_distance as D
-from muscle_mss.core import bone_field_sampling as S
-from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.bones import distance as D
+from muscle_mss.core.bones import field_sampling as S
+from muscle_mss.core.demo.scene import demo_scene
 
 from bench_solver import cpu_model
 

@@ -36,8 +36,8 @@ import time
 import numpy as np
 
 from muscle_mss.core import solver as S
-from muscle_mss.core.demo_arm import demo_arm_scene, flexion_angles
-from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.demo.arm import demo_arm_scene, flexion_angles
+from muscle_mss.core.demo.scene import demo_scene
 from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_SHORTENING,

@@ -25,8 +25,8 @@ import numpy as np
 
 from muscle_mss.core import solver as S
 from muscle_mss.core.model import Bones, prepare
-from muscle_mss.core.bone_spheres import bone_spheres
-from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.bones.spheres import bone_spheres
+from muscle_mss.core.demo.scene import demo_scene
 from muscle_mss.core.settings import METHOD_RELAXATION, STRUCTURES, SolverSettings
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.collision_solver import MSSCollisionSolver

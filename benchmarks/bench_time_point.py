@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from muscle_mss.core import penetration as P
+from muscle_mss.core.contacts import penetration as P
 from muscle_mss.core import relaxation
 from muscle_mss.filters import bone_sets, motion_run, run_output
 from muscle_mss.filters.cli import DEMO_REGIONS, demo_region_scene
@@ -192,7 +192,7 @@ def main(argv=None):
         "`python benchmarks/bench_time_point.py`. Steady state: mean of the time points after "
         "the first. The first time point reads the bones' distance fields and the muscles' "
         "MVC weights from the disk stores of an earlier run when they have them "
-        "(core/field_store.py, mvc_surface_deformer.WEIGHTS_STORE), else computes them; its "
+        "(core/bones/field_store.py, mvc_surface_deformer.WEIGHTS_STORE), else computes them; its "
         "row says which. 'around' = all but the iterations.", "",
         "| scene | N | time point | " + " | ".join(f"{p} s" for p in PARTS)
         + " | around s | total s | load |",

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bone_weights import bone_distances
+from .bones.weights import bone_distances
 from .fibre_direction import fibre_directions
 from .scene import BONES_FILE, FIBRES_FILE, Scene
 
@@ -37,7 +37,7 @@ class Attachment:
 
 def nearest_bone(end_points, bones, labels=None):
     """``(bone index, mean distance mm)``: the bone whose rest surface is nearest on average to
-    the end points (n, 3) mm of one muscle end; ``bones`` as in :func:`.bone_weights.bone_distances`."""
+    the end points (n, 3) mm of one muscle end; ``bones`` as in :func:`.bones.weights.bone_distances`."""
     mean = bone_distances(end_points, bones, labels).mean(axis=0)
     b = int(np.argmin(mean))
     return b, float(mean[b])

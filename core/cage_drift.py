@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .triangle_distance import unsigned_distance
+from .bones.triangle_distance import unsigned_distance
 
 CAGE_DRIFT_LIMIT = 10.0
 """mm: the drift above which a vertex counts as having left its cage: twice the most that a

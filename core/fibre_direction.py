@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bone_weights import bone_distances
+from .bones.weights import bone_distances
 from .scene import BONES_FILE, FibreSet
 
 AMBIGUOUS_SHARE = 0.1

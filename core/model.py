@@ -157,7 +157,7 @@ BONE_CONTACTS = (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES)
 @dataclass(frozen=True)
 class Bones:
     """The posed bones as the muscle-bone contacts read them: ``solids`` (a
-    :class:`~muscle_mss.core.bone_distance.BoneSolids`) or ``spheres``, the paper's sphere sets
+    :class:`~muscle_mss.core.bones.distance.BoneSolids`) or ``spheres``, the paper's sphere sets
     ``(centres (b, 3) mm, radius (b,) mm, bone (b,) int)`` sorted by bone; neither: no bones."""
 
     spheres: tuple | None = None

@@ -4,11 +4,11 @@
 the bones. The muscles (the triangular surfaces as well as the particles) are transformed as well,
 using an interpolated transformation matrix of the nearest bones."
 
-This module and :mod:`.bone_weights` hold the three pieces of that sentence:
+This module and :mod:`.bones.weights` hold the three pieces of that sentence:
 
 * the bone transforms at any time: :func:`pose_at` interpolates a :class:`~.scene.Motion`
   between its rows (rotation by quaternion slerp, translation linearly) and clamps outside it;
-* the weights of the nearest bones: :mod:`.bone_weights` (exact point-to-triangle distance to
+* the weights of the nearest bones: :mod:`.bones.weights` (exact point-to-triangle distance to
   each bone surface in the rest pose, and the fall-off formula);
 * the blend of the bone transforms: :func:`blend_linear` (linear blend skinning) and
   :func:`blend_dual_quaternion` (Kavan et al. 2008, dual quaternion skinning), and

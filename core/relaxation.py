@@ -6,11 +6,11 @@ Each iteration:
    a viscous drag on the velocities and the pressure of each muscle's cage against a change of
    its rest volume, semi-implicit Euler, fixed particles stay);
 2. collision detection among the boundary spheres of different muscles and between muscle
-   spheres and bone spheres, through the chosen structure (:mod:`~muscle_mss.core.spatial_hash`,
-   the default, or the paper's :mod:`~muscle_mss.core.octree_bvh`); both find the same pairs;
-   or, given the bones as solids (:class:`~muscle_mss.core.bone_distance.BoneSolids`),
+   spheres and bone spheres, through the chosen structure (:mod:`~muscle_mss.core.contacts.spatial_hash`,
+   the default, or the paper's :mod:`~muscle_mss.core.contacts.octree_bvh`); both find the same pairs;
+   or, given the bones as solids (:class:`~muscle_mss.core.bones.distance.BoneSolids`),
    muscle spheres against each bone's signed distance
-   (:mod:`~muscle_mss.core.solid_contacts`): a sphere
+   (:mod:`~muscle_mss.core.contacts.solid_contacts`): a sphere
    carried past a bone's shell of spheres is pushed on through it by the inner spheres, while
    the distance gradient takes it out by the nearer side from any depth;
 3. response exactly as the paper: per colliding pair each sphere moves half the penetration along
@@ -30,7 +30,7 @@ displacement is not finite or exceeds its own size in one iteration has diverged
 stops with a :class:`MuscleMSSError` naming it.
 
 After the last iteration, collision passes without the MSS update
-(:func:`~muscle_mss.core.contacts.project`, the same
+(:func:`~muscle_mss.core.contacts.sphere_contacts.project`, the same
 detection and response) run until no pair of spheres of different objects overlaps by more
 than a tolerance (at most ``projection_passes``). One response leaves overlap behind wherever
 a sphere is pressed between two objects — a muscle sphere pushed by another muscle into a
@@ -52,7 +52,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from .contacts import (bounding_box, collide, collision_spheres, contact_options,
+from .contacts.sphere_contacts import (bounding_box, collide, collision_spheres, contact_options,
                        contact_setup, final_passes, gather_sphere, respond_sphere, solved_state,
                        used_structures, world_box)
 from .errors import MuscleMSSError, PoseError
@@ -63,7 +63,7 @@ from .mss import mss_state, muscle_step
 from .settings import (METHOD_RELAXATION, TERMINATION_BUDGET,
                        TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS,
                        SolverSettings)
-from .solid_contacts import respond_solids, solid_contacts_range
+from .contacts.solid_contacts import respond_solids, solid_contacts_range
 
 PROGRESS_SECONDS = 0.1
 """How often (s) a solve calls its ``progress``: ParaView's progress bar and abort."""
@@ -82,7 +82,7 @@ RelaxationControl = namedtuple("RelaxationControl", (
 RelaxationControl.__doc__ = """When the loop stops: ``termination`` the index of the
 termination in :data:`~muscle_mss.core.settings.TERMINATIONS`, its ``threshold`` mm and
 ``budget`` s; ``limit`` (M,) mm each muscle's divergence limit (:func:`_divergence_limits`) and
-``box`` (2, 3) mm the world box (:func:`~muscle_mss.core.contacts.world_box`)."""
+``box`` (2, 3) mm the world box (:func:`~muscle_mss.core.contacts.sphere_contacts.world_box`)."""
 
 
 @njit(cache=True, parallel=True)
@@ -91,9 +91,9 @@ def _step_and_gather(mss, springs, particle, centres, disp, collided, sphere_ptr
     """The MSS step of every muscle (:func:`muscle_mss.core.mss.muscle_step` of ``mss`` and
     ``springs``), each
     muscle's sphere centres then gathered for the collision tests (the arrays of
-    :class:`~muscle_mss.core.contacts.SphereState`) and, with ``use_solids``, its particles
+    :class:`~muscle_mss.core.contacts.sphere_contacts.SphereState`) and, with ``use_solids``, its particles
     tested against the bones as solids (``solids`` and their fields ``grid``,
-    :func:`~muscle_mss.core.solid_contacts.solid_contacts_range`; not timed apart: a clock in a
+    :func:`~muscle_mss.core.contacts.solid_contacts.solid_contacts_range`; not timed apart: a clock in a
     parallel region takes the GIL) — one parallel region: every region costs a thread wake-up
     (~0.1 ms on a virtual machine), which is a large part of one iteration at N = 80.
     ``escaped[m]`` is set when a sphere centre or a particle tested against the solids of

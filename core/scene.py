@@ -1,7 +1,7 @@
 """A scene as plain arrays (DESIGN §4): muscle and bone surfaces, fibres, motion.
 
 Lengths are in millimetres. The file layer (``muscle_mss.filters.scene_io``) reads and writes
-these objects; the demo generator (``muscle_mss.core.demo_scene``) builds one.
+these objects; the demo generator (``muscle_mss.core.demo.scene``) builds one.
 """
 from __future__ import annotations
 

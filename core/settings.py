@@ -14,8 +14,8 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from .errors import MuscleMSSError
-from .octree_bvh import MAX_DEPTH as DEFAULT_BVH_MAX_DEPTH
-from .octree_bvh import MIN_PRIMITIVES as DEFAULT_BVH_MIN_PRIMITIVES
+from .contacts.octree_bvh import MAX_DEPTH as DEFAULT_BVH_MAX_DEPTH
+from .contacts.octree_bvh import MIN_PRIMITIVES as DEFAULT_BVH_MIN_PRIMITIVES
 
 # ---- option values ---------------------------------------------------------------------------
 
@@ -73,7 +73,7 @@ DEFAULT_TISSUE_ALONG = 0.1
 # shorten and thicken instead of folding (fibres' arc / chord over the motion at most 1.18
 # against 1.53 without), and both demo motions converge in fewer iterations.
 DEFAULT_FIBRE_SHORTENING = True
-# The final collision passes (:func:`muscle_mss.core.contacts.project`): a sphere pressed
+# The final collision passes (:func:`muscle_mss.core.contacts.sphere_contacts.project`): a sphere pressed
 # between two objects keeps half its overlap per pass (two passes halve it), so 100 passes leave
 # any overlap below 1e-15 of itself; they stop as soon as the deepest penetration is below the
 # tolerance.

@@ -3,7 +3,7 @@
 :func:`solve` is the whole stage: fibre shortening (:mod:`~muscle_mss.core.fibre_shortening`),
 the method the settings name with its final collision passes, the divergence check, the exact
 push of free particles out of thin bones
-(:func:`~muscle_mss.core.exact_bone_distance.particles_out_of_bones`) and the tissue's share.
+(:func:`~muscle_mss.core.bones.exact_distance.particles_out_of_bones`) and the tissue's share.
 Methods: ``paper relaxation`` (:mod:`~muscle_mss.core.relaxation`, the paper's explicit
 iterations) and ``quasi-static`` (:mod:`~muscle_mss.core.quasi_static`, the static equilibrium).
 
@@ -61,7 +61,7 @@ def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings 
     result.tissue_share = tissue_share(model, result.positions, settings.connective_tissue,
                                        settings.tissue_along, tension)
     if bones.solids is not None:
-        from .exact_bone_distance import particles_out_of_bones
+        from .bones.exact_distance import particles_out_of_bones
         result.positions, result.collided = particles_out_of_bones(
             model, bones.solids, result.positions, result.collided)
     result.bone_contact = bones.contact

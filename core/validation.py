@@ -221,7 +221,7 @@ def _inside_share(middle, surface_points, triangles):
 def _surface_inside(points, surface_points, triangles, where):
     """``(share, depth mm)``: the share of the vertices ``points`` (v, 3) inside a closed
     surface and the deepest of them (its distance to the surface's triangles)."""
-    from .triangle_distance import unsigned_distance
+    from .bones.triangle_distance import unsigned_distance
     inside = winding_numbers(points, surface_points, triangles) > 0.5
     if not inside.any():
         return 0.0, 0.0

@@ -1,7 +1,7 @@
 """Bones of an input multiblock as collision spheres (paper §3.3: bones are sphere sets too), and
 as solids (signed distance fields) for the quasi-static solver's contacts.
 
-One place that turns a bones multiblock into the spheres of :func:`muscle_mss.core.bone_spheres.
+One place that turns a bones multiblock into the spheres of :func:`muscle_mss.core.bones.spheres.
 bone_spheres`, so that the Spring Builder (clearing muscle radii at rest), the MSS Collision
 Solver (collisions) and the motion runner (remaining penetration) see the same spheres.
 
@@ -17,20 +17,20 @@ motion; any other bone is sampled afresh. Sampling is itself equivariant under r
 cached set equals a fresh sampling of the moved bone up to rounding. The bones' signed distance
 fields (:func:`bone_solids`) go through a cache of the same kind: sampled once per bone shape
 (10 s for the three bones of the demo thigh), then placed by the fitted rigid motion; a shape
-sampled by an earlier run is read from disk (:mod:`muscle_mss.core.field_store`).
+sampled by an earlier run is read from disk (:mod:`muscle_mss.core.bones.field_store`).
 """
 import hashlib
 from collections import OrderedDict
 
 import numpy as np
 
-from muscle_mss.core.bone_distance import BoneFieldSet, BoneSolids, signed_distances
-from muscle_mss.core.bone_field_sampling import bone_distance_field
-from muscle_mss.core.exact_bone_distance import exact_signed_distances
-from muscle_mss.core.triangle_distance import (PreparedSurface, inside_surface,
+from muscle_mss.core.bones.distance import BoneFieldSet, BoneSolids, signed_distances
+from muscle_mss.core.bones.field_sampling import bone_distance_field
+from muscle_mss.core.bones.exact_distance import exact_signed_distances
+from muscle_mss.core.bones.triangle_distance import (PreparedSurface, inside_surface,
                                                 prepared_surface, surface_digest)
-from muscle_mss.core import field_store
-from muscle_mss.core.bone_spheres import DEFAULT_SPACING, bone_spheres
+from muscle_mss.core.bones import field_store
+from muscle_mss.core.bones.spheres import DEFAULT_SPACING, bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.model import BONE_CONTACT_SOLID, Bones
 from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
@@ -51,7 +51,7 @@ CACHE_ENTRIES = 64          # bone shapes kept (least recently used dropped)
 cache_counts = {"sampled": 0, "reused": 0, "moved": 0}
 _cache = OrderedDict()      # key -> list of (points (n, 3), (centres (k, 3), radii (k,)))
 #: The same for the bones' distance fields (:func:`cached_bone_field`), with ``loaded``: read
-#: from the disk store (:mod:`muscle_mss.core.field_store`) instead of sampled, and
+#: from the disk store (:mod:`muscle_mss.core.bones.field_store`) instead of sampled, and
 #: ``remembered``: bones that :func:`bone_solids` returned from its memory of the same,
 #: unmodified blocks.
 field_counts = {"sampled": 0, "loaded": 0, "reused": 0, "moved": 0, "remembered": 0}
@@ -153,11 +153,11 @@ def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", us
 
 
 def cached_bone_field(points, triangles, where: str = "bone", digest=None):
-    """The signed distance field of one bone surface (:func:`muscle_mss.core.bone_field_sampling.
+    """The signed distance field of one bone surface (:func:`muscle_mss.core.bones.field_sampling.
     bone_distance_field`, default spacing) through a rigid-bone cache like the spheres': the
     field of the first surface of this shape, and the (3, 4) transform from that field's frame
     to ``points``. A shape not in memory is read from the disk store of earlier runs
-    (:mod:`muscle_mss.core.field_store`) or sampled and stored there. Returns
+    (:mod:`muscle_mss.core.bones.field_store`) or sampled and stored there. Returns
     ``(BoneDistanceField, transform)``."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     key = _cache_key(points, triangles, digest=digest)
@@ -187,7 +187,7 @@ def cached_bone_field(points, triangles, where: str = "bone", digest=None):
 
 def field_surface(field) -> PreparedSurface:
     """The bone surface a field of :func:`cached_bone_field` was sampled from, in the field's
-    frame, prepared for exact distances (:mod:`muscle_mss.core.exact_bone_distance`)."""
+    frame, prepared for exact distances (:mod:`muscle_mss.core.bones.exact_distance`)."""
     return _field_surfaces[id(field)][1]
 
 
@@ -245,7 +245,7 @@ def bone_sphere_set(bones, spacing=None, where: str = "bones", use_cache=True):
 def bone_depths(points, bones, where: str = "bones") -> np.ndarray:
     """How deep (mm, (n,)) each of ``points`` (n, 3) mm lies inside a bone of the posed
     multiblock ``bones`` (:func:`bone_solids`, exact near the surfaces:
-    :func:`~muscle_mss.core.exact_bone_distance.exact_signed_distances`): minus the smallest
+    :func:`~muscle_mss.core.bones.exact_distance.exact_signed_distances`): minus the smallest
     signed distance, negative outside every bone."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     fields, transforms = bone_solids(bones, where)

@@ -89,9 +89,9 @@ DEMO_SIZES = ("full", "small")
 def demo_region_scene(region: str, size: str) -> Scene:
     """The demo scene of ``region`` (one of :data:`DEMO_REGIONS`) at ``size``."""
     if region == REGION_ARM:
-        from muscle_mss.core.demo_arm import demo_arm_scene
+        from muscle_mss.core.demo.arm import demo_arm_scene
         return demo_arm_scene(size)
-    from muscle_mss.core.demo_scene import demo_scene
+    from muscle_mss.core.demo.scene import demo_scene
     return demo_scene(size)
 
 
@@ -99,9 +99,9 @@ def demo_region_motion(region: str):
     """The motion of the demo scene of ``region`` (what :func:`demo_region_scene` holds), without
     building the scene."""
     if region == REGION_ARM:
-        from muscle_mss.core.demo_arm import flexion_motion
+        from muscle_mss.core.demo.arm import flexion_motion
         return flexion_motion()
-    from muscle_mss.core.demo_scene import gait_motion
+    from muscle_mss.core.demo.scene import gait_motion
     return gait_motion()
 
 

@@ -6,7 +6,7 @@ Inputs: ``PosedModel`` (the Rigid Pose Transform's model: points = posed particl
 optional ``in_bone_at_rest`` (the particles the solid bones leave where they are);
 springs = two-point line cells with cell data ``rest_length``, ``stiffness``, ``damping``) and
 ``PosedBones`` (the posed bone surfaces: solids, each bone's signed distance field, by default;
-or spheres sampled by :func:`muscle_mss.core.bone_spheres.bone_spheres`; both sampled once per
+or spheres sampled by :func:`muscle_mss.core.bones.spheres.bone_spheres`; both sampled once per
 bone shape and moved with the bone, :mod:`~muscle_mss.filters.bone_sets`).
 
 Outputs: ``SolvedModel`` — every input block and array kept, points = solved positions, plus
@@ -47,7 +47,7 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.model import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, BONE_CONTACTS,
                                    Bones, MSSModel, PreparedModel, prepare, with_rest_state)
 from muscle_mss.core.solver import solve
-from muscle_mss.core.bone_spheres import DEFAULT_SPACING
+from muscle_mss.core.bones.spheres import DEFAULT_SPACING
 from muscle_mss.core.errors import MuscleMSSError, PoseError
 from muscle_mss.core.settings import (
     DEFAULT_BULK_MODULUS, DEFAULT_BVH_MAX_DEPTH, DEFAULT_CONNECTIVE_TISSUE,

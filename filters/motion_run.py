@@ -202,8 +202,8 @@ def sphere_overlaps(solver, particles) -> np.ndarray:
     """The deepest overlap (mm) of each muscle's collision spheres in the solved ``particles``
     with spheres of other muscles and with the bones ``solver`` (the MSS Collision Solver) last
     solved against (its ``solved_bones``: solids or sphere sets); one value per muscle block."""
-    from muscle_mss.core.bone_distance import signed_distances
-    from muscle_mss.core.penetration import max_penetration_pairs
+    from muscle_mss.core.bones.distance import signed_distances
+    from muscle_mss.core.contacts.penetration import max_penetration_pairs
     centres, radii, owner, fixed = [], [], [], []
     muscles = V.blocks(particles, "solved model")
     for k, (_, block) in enumerate(muscles):

@@ -13,19 +13,19 @@ vertices per muscle) keeps about 10 MB per muscle, 130 MB for its 13 muscles.
 
 Surfaces kept out of bones. The cage follows the collision spheres, and between
 them the surface can sink into a bone. With the optional RestBones and PosedBones inputs, each
-bone gets a signed distance field (:mod:`muscle_mss.core.bone_distance`, sampled once in the
+bone gets a signed distance field (:mod:`muscle_mss.core.bones.distance`, sampled once in the
 rest frame, rebuilt only when RestBones or BoneFieldSpacing change) and every deformed vertex
 that is inside a posed bone but was outside that bone at rest is pushed out onto its surface
 along the distance gradient (``KeepOutOfBones``); vertices inside a bone at rest (a muscle
 pressed against its bone) are left alone; the push ends on the bone's triangles
-(:mod:`muscle_mss.core.exact_bone_distance`: the fields are millimetres off next to thin
+(:mod:`muscle_mss.core.bones.exact_distance`: the fields are millimetres off next to thin
 forearm bones), and inside and outside are decided by the exact distance near each surface.
 Each bone's posed transform is fitted from its rest and posed vertices. Reported per muscle:
 the point array ``new_in_bone_depth`` and the field data ``new_in_bone_vertices`` / ``new_in_bone_depth_mm`` (before the push) and
 ``new_in_bone_vertices_after_push`` / ``new_in_bone_depth_after_push_mm``; a vertex counts as
 inside when deeper than :data:`INSIDE_TOLERANCE`. Every surface also reports the field data
 ``in_other_muscle_vertices`` / ``in_other_muscle_depth_mm``: its vertices (as written) inside
-another muscle's deformed surface, and the deepest (:mod:`muscle_mss.core.muscle_overlap`).
+another muscle's deformed surface, and the deepest (:mod:`muscle_mss.core.contacts.muscle_overlap`).
 """
 from __future__ import annotations
 
@@ -35,20 +35,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from muscle_mss.core import mvc
-from muscle_mss.core.bone_distance import BoneFieldSet, push_out_of_bones
+from muscle_mss.core.bones.distance import BoneFieldSet, push_out_of_bones
 from muscle_mss.core.fibre_shortening import kept_shape_lengths
-from muscle_mss.core.exact_bone_distance import exact_signed_distances, push_out_exactly
-from muscle_mss.core.bone_field_sampling import DEFAULT_SPACING, bone_distance_field
+from muscle_mss.core.bones.exact_distance import exact_signed_distances, push_out_exactly
+from muscle_mss.core.bones.field_sampling import DEFAULT_SPACING, bone_distance_field
 from muscle_mss.core.cage import (Cage, fibre_polylines, muscle_cage, polyline_chords,
                                   polyline_lengths)
 from muscle_mss.core.cage_drift import CAGE_DRIFT_LIMIT, cage_distances, cage_drift
 from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.muscle_overlap import vertices_in_other_muscles
+from muscle_mss.core.contacts.muscle_overlap import vertices_in_other_muscles
 from muscle_mss.core.mvc import bounded_coordinates, mvc_deform
 from muscle_mss.core.rigid_fit import fitted_rigid_transform
 from muscle_mss.core.surface_normals import point_normals
-from muscle_mss.core.triangle_distance import prepared_surface
+from muscle_mss.core.bones.triangle_distance import prepared_surface
 
 from . import array_names as A
 from . import vtk_arrays as V

@@ -18,7 +18,7 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject
 
 from muscle_mss.core.attachments import (INSERTION, ORIGIN, fixed_particle_bones, nearest_bone,
                                          unknown_bone_problem)
-from muscle_mss.core.bone_weights import bone_weights
+from muscle_mss.core.bones.weights import bone_weights
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import motion_from_rows
 from muscle_mss.core.pose import BLENDINGS, DUAL_QUATERNION, blend, pose_at, transform_rigid

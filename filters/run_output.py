@@ -52,7 +52,7 @@ a fibre that folds instead of shortening goes well above); ``max_fibre_bend``: t
 of a fibre's arc / chord to its arc / chord at rest (1: as curved as at rest, so a fibre curved
 at rest is not counted as folded; above: it folds, or wraps a bone the motion brings against
 it); ``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres
-of other muscles (:mod:`muscle_mss.core.penetration`) and with the bones as the solver saw them
+of other muscles (:mod:`muscle_mss.core.contacts.penetration`) and with the bones as the solver saw them
 (``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed
 surface vertices inside a bone they were outside at rest, before and after the MVC Surface
 Deformer pushes them out; ``in_other_muscle_*``: deformed surface vertices inside another

@@ -80,7 +80,7 @@ def warm_up(variants=VARIANTS, surfaces_alone=False) -> float:
     ``surfaces_alone``: first the chain with the MVC Surface Deformer fed by the posed model,
     no solve (the surface kernels, for a second process to compile while the first compiles
     the solver's: :func:`compile_ahead`)."""
-    from muscle_mss.core.demo_scene import demo_scene
+    from muscle_mss.core.demo.scene import demo_scene
     from .scene_io import write_scene
 
     start = time.perf_counter()

@@ -1,7 +1,7 @@
 """The elbow demo scene written for a test, with the time point of its most flexed pose."""
 import numpy as np
 
-from muscle_mss.core import demo_arm
+from muscle_mss.core.demo import arm as demo_arm
 from muscle_mss.filters.scene_io import write_scene
 
 

@@ -605,7 +605,7 @@ _SMALL = []
 
 def _small():
     if not _SMALL:
-        from muscle_mss.core.demo_scene import demo_scene
+        from muscle_mss.core.demo.scene import demo_scene
         _SMALL.append(demo_scene("small"))
     return _SMALL[0]
 

@@ -1,7 +1,7 @@
 """Shared fixtures: the small demo scene in memory and on disk (the tests' default data).
 
 The bones' distance fields and the muscles' mean value coordinates are not read from or written
-to the user's disk stores (:mod:`muscle_mss.core.field_store`,
+to the user's disk stores (:mod:`muscle_mss.core.bones.field_store`,
 ``muscle_mss.filters.mvc_surface_deformer.WEIGHTS_STORE``) during the tests, nor by the ParaView
 processes they start: every run computes them, so the counts the tests assert are exact."""
 import os
@@ -15,7 +15,7 @@ os.environ["MUSCLE_MSS_MVC_WEIGHTS"] = "off"
 @pytest.fixture(scope="session")
 def small_scene():
     """The small demo scene (core ``Scene``); do not modify it, copy what you change."""
-    from muscle_mss.core.demo_scene import demo_scene
+    from muscle_mss.core.demo.scene import demo_scene
     return demo_scene("small")
 
 

@@ -1,6 +1,6 @@
 """Slow, obviously correct references of the exact signed distance to a closed triangle surface
-(:mod:`muscle_mss.core.triangle_distance`) and of pushing points out of it
-(:func:`muscle_mss.core.bone_distance.push_out_of_bones`), for the tests only."""
+(:mod:`muscle_mss.core.bones.triangle_distance`) and of pushing points out of it
+(:func:`muscle_mss.core.bones.distance.push_out_of_bones`), for the tests only."""
 import numpy as np
 
 def reference_signed_distance(points, triangles, queries) -> np.ndarray:

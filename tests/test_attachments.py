@@ -6,7 +6,7 @@ import copy
 import numpy as np
 import pytest
 
-from muscle_mss.core import demo_arm, demo_scene
+from muscle_mss.core.demo import arm as demo_arm, scene as demo_scene
 from muscle_mss.core.attachments import INSERTION, ORIGIN, fixed_particle_bones, scene_attachments
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.pose import pose_at

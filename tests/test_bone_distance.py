@@ -3,13 +3,13 @@ exact distances that correct them next to thin bones (issue 30)."""
 import numpy as np
 import pytest
 
-from muscle_mss.core.bone_distance import (BRICK, COARSE, BoneFieldSet, push_out_of_bones,
+from muscle_mss.core.bones.distance import (BRICK, COARSE, BoneFieldSet, push_out_of_bones,
                                            signed_distances)
-from muscle_mss.core.bone_field_sampling import bone_distance_field, bone_field_set
+from muscle_mss.core.bones.field_sampling import bone_distance_field, bone_field_set
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.exact_bone_distance import (EXACT_CLEARANCE, exact_signed_distances,
+from muscle_mss.core.bones.exact_distance import (EXACT_CLEARANCE, exact_signed_distances,
                                                  push_out_exactly)
-from muscle_mss.core.triangle_distance import (exact_signed_distance, inside_surface,
+from muscle_mss.core.bones.triangle_distance import (exact_signed_distance, inside_surface,
                                                prepared_surface)
 from reference_distance import reference_push_out, reference_signed_distance
 
@@ -73,7 +73,7 @@ def test_exact_distance_matches_the_brute_force_reference_inside_and_out():
 
 
 def test_a_surface_is_prepared_once_while_it_stays_bitwise_the_same():
-    from muscle_mss.core import triangle_distance
+    from muscle_mss.core.bones import triangle_distance
     triangle_distance.PREPARED_SURFACES.clear()
     points, triangles = sphere_mesh(10.0, levels=2)
     queries = np.random.default_rng(2).uniform(-15, 15, (50, 3))
@@ -155,7 +155,7 @@ def test_the_fields_error_bound_holds_and_inside_is_measured_only_near_the_surfa
     assert np.abs(sampled - exact)[in_box].max() <= field.error_bound
     assert (sampled[~in_box] >= exact[~in_box] - 1e-9).all() and (exact[~in_box] > 0).all()
     measured = []
-    import muscle_mss.core.triangle_distance as T
+    import muscle_mss.core.bones.triangle_distance as T
     real = T.exact_signed_distance
     monkeypatch.setattr(T, "exact_signed_distance",
                         lambda p, t, q, where="": measured.append(len(q)) or real(p, t, q, where))

@@ -1,12 +1,13 @@
-"""Collision detection and response (core/spatial_hash.py, core/octree_bvh.py,
-core/bone_spheres.py and the response rule of core/mss.py)."""
+"""Collision detection and response (core/contacts/spatial_hash.py, core/contacts/octree_bvh.py,
+core/bones/spheres.py and the response rule of core/mss.py)."""
 import numpy as np
 import pytest
 
-from muscle_mss.core import (collision_spheres, contacts, octree_bvh, spatial_hash, solver,
-                             sphere_lists)
+from muscle_mss.core.contacts import (collision_spheres, octree_bvh, spatial_hash, sphere_lists,
+                                      sphere_contacts as contacts)
+from muscle_mss.core import solver
 from muscle_mss.core.model import Bones, MSSModel
-from muscle_mss.core.bone_spheres import SPHERES_PER_AREA, bone_spheres, surface_area
+from muscle_mss.core.bones.spheres import SPHERES_PER_AREA, bone_spheres, surface_area
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import DEFAULT_PENETRATION_TOLERANCE, STRUCTURES
 
@@ -127,8 +128,8 @@ def test_final_passes_free_a_sphere_pressed_between_a_bone_and_another_muscle(st
 
 def box_solid(lower, upper, clearance):
     """One box bone as a solid (rest pose) and its mesh."""
-    from muscle_mss.core.bone_distance import BoneSolids
-    from muscle_mss.core.bone_field_sampling import bone_field_set
+    from muscle_mss.core.bones.distance import BoneSolids
+    from muscle_mss.core.bones.field_sampling import bone_field_set
     from test_bone_distance import box_mesh
     box = box_mesh(lower, upper)
     return BoneSolids(bone_field_set([box]), np.eye(3, 4)[None], np.array([clearance])), box

@@ -23,7 +23,7 @@ from muscle_mss.core.settings import DEFAULT_METHOD, METHOD_QUASI_STATIC, METHOD
 COMPILED = """
 import json, sys
 from numba.core.dispatcher import Dispatcher
-import muscle_mss.core.octree_bvh, muscle_mss.core.quasi_static, muscle_mss.core.relaxation
+import muscle_mss.core.contacts.octree_bvh, muscle_mss.core.quasi_static, muscle_mss.core.relaxation
 from muscle_mss.filters import warm_up
 warm_up.warm_up(warm_up.DEFAULT_VARIANTS)
 found = {}
@@ -34,7 +34,7 @@ for name, module in sorted(sys.modules.items()):
                 found[f"{name}.{attr}"] = len(value.signatures)
 print("RESULT " + json.dumps(found))
 from numba.core import event
-from muscle_mss.core.demo_scene import demo_scene
+from muscle_mss.core.demo.scene import demo_scene
 from muscle_mss.filters import motion_run
 from muscle_mss.filters.scene_io import write_scene
 later = []
@@ -51,9 +51,9 @@ with event.install_listener("numba:compile", Compiles()):
 print("LATER " + json.dumps(later))
 """
 
-BVH = "muscle_mss.core.octree_bvh."
-SPHERE_SET_CONTACTS = ("muscle_mss.core.spatial_hash.own_list_contacts",
-                       "muscle_mss.core.spatial_hash._own_list_contacts")
+BVH = "muscle_mss.core.contacts.octree_bvh."
+SPHERE_SET_CONTACTS = ("muscle_mss.core.contacts.spatial_hash.own_list_contacts",
+                       "muscle_mss.core.contacts.spatial_hash._own_list_contacts")
 METHOD_MODULES = {METHOD_RELAXATION: "muscle_mss.core.relaxation.",
                   METHOD_QUASI_STATIC: "muscle_mss.core.quasi_static."}
 
@@ -94,7 +94,7 @@ def test_the_default_run_compiled_its_kernels(compiled):
     """The control: the run reached the kernels every default run uses (pose blending, the
     contacts, mean value coordinates), each once."""
     for kernel in ("muscle_mss.core.pose._blend_dual_quaternion",
-                   "muscle_mss.core.solid_contacts.solid_contacts",
+                   "muscle_mss.core.contacts.solid_contacts.solid_contacts",
                    "muscle_mss.core.mvc._mean_value_coordinates"):
         assert compiled[kernel] == 1, kernel
     assert any(n for k, n in compiled.items() if k.startswith(METHOD_MODULES[DEFAULT_METHOD]))
@@ -108,7 +108,8 @@ def test_the_default_run_compiles_no_kernel_of_the_other_method(compiled):
 
 def test_the_default_run_compiles_no_octree_bvh_kernel(compiled):
     assert any(k.startswith(BVH) for k in compiled)
-    assert _with_signatures(compiled, (BVH, "muscle_mss.core.contacts._bvh_contacts")) == []
+    assert _with_signatures(compiled,
+                            (BVH, "muscle_mss.core.contacts.sphere_contacts._bvh_contacts")) == []
 
 
 def test_the_default_run_compiles_no_bone_sphere_set_contact_kernel(compiled):

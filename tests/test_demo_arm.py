@@ -8,7 +8,7 @@ Runs in the venv and in Debian's ParaView Python (vtkmodules only).
 import numpy as np
 import pytest
 
-from muscle_mss.core import demo_arm as arm
+from muscle_mss.core.demo import arm
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import rigid_problem
 from muscle_mss.core.validation import scene_problems

@@ -10,7 +10,7 @@ import importlib.util
 import numpy as np
 import pytest
 
-from muscle_mss.core import demo_scene as demo
+from muscle_mss.core.demo import scene as demo
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import rigid_problem
 from muscle_mss.core.mesh_checks import surface_problems

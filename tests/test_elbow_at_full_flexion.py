@@ -8,7 +8,7 @@ distance fields and one solve)."""
 import numpy as np
 import pytest
 
-from muscle_mss.core import demo_arm
+from muscle_mss.core.demo import arm as demo_arm
 from muscle_mss.core.pose import pose_at
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V

@@ -467,7 +467,7 @@ def test_an_open_rest_surface_is_refused_by_the_probe():
 
 def _demo_model(particles_per_fibre=None):
     """The small demo scene as VTK and its Spring Builder (defaults unless told)."""
-    from muscle_mss.core.demo_scene import demo_scene
+    from muscle_mss.core.demo.scene import demo_scene
     from muscle_mss.filters import FibreResampler, SpringBuilder
     from muscle_mss.filters.scene_io import scene_to_vtk
 

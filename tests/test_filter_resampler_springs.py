@@ -365,7 +365,7 @@ def test_small_demo_scene_spheres_do_not_overlap_after_the_shrink(small_scene):
 
 
 def test_with_bones_no_muscle_sphere_overlaps_a_bone_sphere_at_rest(small_scene):
-    from muscle_mss.core.bone_spheres import bone_spheres
+    from muscle_mss.core.bones.spheres import bone_spheres
     from muscle_mss.filters.scene_io import scene_to_vtk
     muscles, fibres, bones, _ = scene_to_vtk(small_scene)
     particles = resample(fibres, ParticlesPerFibre=10)

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from muscle_mss.core import collision_spheres, octree_bvh, spatial_hash
-from muscle_mss.core.bone_spheres import bone_spheres
+from muscle_mss.core.contacts import collision_spheres, octree_bvh, spatial_hash
+from muscle_mss.core.bones.spheres import bone_spheres
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.filters import (FibreResampler, MSSCollisionSolver, RigidPoseTransform,
@@ -118,7 +118,7 @@ def deepest_penetration(out, bones):
     as a solid (the default BoneContact: its distance field, as the solver sees it) that a solve
     can resolve (not both fixed; tendon spheres sit in their bone), and the mean sphere
     radius."""
-    from muscle_mss.core.bone_distance import signed_distances
+    from muscle_mss.core.bones.distance import signed_distances
     from muscle_mss.filters.bone_sets import bone_solids
     centres, spheres = spheres_of(out, bones, 2.05)
     muscle_pairs, _ = spatial_hash.colliding_pairs(centres, spheres)
@@ -179,9 +179,9 @@ def test_solved_blocks_count_free_particles_in_bones_and_solids_leave_none_new(f
 
 def test_skipping_particles_clear_of_the_solid_bones_changes_nothing(flexed, monkeypatch):
     """The solid contacts skip a particle that has moved little since it was found clear of
-    every bone by a margin (core/solid_contacts.py, SOLID_LIPSCHITZ); testing every particle in
+    every bone by a margin (core/contacts/solid_contacts.py, SOLID_LIPSCHITZ); testing every particle in
     every iteration gives bitwise the same solve at the most flexed pose."""
-    from muscle_mss.core import solid_contacts
+    from muscle_mss.core.contacts import solid_contacts
     skipping = snapshot(solve(*flexed, Iterations=150)[0])
     monkeypatch.setattr(solid_contacts, "SOLID_SLACK_CELLS", np.inf)
     every = snapshot(solve(*flexed, Iterations=150)[0])
@@ -262,7 +262,7 @@ def test_rest_pose_stays_at_rest_once_the_spheres_are_clear_of_the_bones(small_s
 
 @pytest.fixture(scope="module")
 def small_arm():
-    from muscle_mss.core.demo_arm import demo_arm_scene
+    from muscle_mss.core.demo.arm import demo_arm_scene
     return demo_arm_scene("small")
 
 

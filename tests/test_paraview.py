@@ -274,7 +274,7 @@ def test_the_plugin_says_it_compiles_among_the_output_messages(small_scene_dir, 
 
 
 def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
-    from muscle_mss.core.demo_scene import MUSCLE_NAMES, demo_scene
+    from muscle_mss.core.demo.scene import MUSCLE_NAMES, demo_scene
     from muscle_mss.core.motion import farthest_pose_index
     from muscle_mss.filters.scene_io import write_scene
     from muscle_mss.plugin.pipeline import fibre_strain_series

@@ -1,7 +1,7 @@
-"""Remaining overlap per object after a solve (core.penetration)."""
+"""Remaining overlap per object after a solve (core.contacts.penetration)."""
 import numpy as np
 
-from muscle_mss.core.penetration import max_penetration_per_object
+from muscle_mss.core.contacts.penetration import max_penetration_per_object
 
 
 def brute_force(centres, radii, owner, n, bone_centres, bone_radii, fixed):

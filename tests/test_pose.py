@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.bone_weights import bone_distances, bone_weights, weights_from_distances
+from muscle_mss.core.bones.weights import bone_distances, bone_weights, weights_from_distances
 from muscle_mss.core.pose import (blend, blend_dual_quaternion, blend_linear, pose_at,
                                   quaternion_to_rotation, rotation_to_quaternion, slerp,
                                   transform_rigid)

@@ -8,7 +8,7 @@ from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 from muscle_mss.core import quasi_static as Q
 from muscle_mss.core import model as S
 from muscle_mss.core import relaxation
-from muscle_mss.core.bone_distance import BoneSolids
+from muscle_mss.core.bones.distance import BoneSolids
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import (DEFAULT_BULK_MODULUS, DEFAULT_CONTACT_WEIGHTS,
                                       DEFAULT_ITERATIONS, DEFAULT_PENETRATION_TOLERANCE,
@@ -384,7 +384,7 @@ def chain_in_a_box(face):
     """The chain of chain_on_a_ball and a box bone reaching from below its strands to its +x
     face at ``face`` mm, spanning the chain's width and its middle (z 4.5 to 10.5 mm), as a
     solid with a 0.5 mm clearance: ``(model, box mesh, BoneSolids, inside at the start)``."""
-    from muscle_mss.core.bone_field_sampling import bone_field_set
+    from muscle_mss.core.bones.field_sampling import bone_field_set
     from reference_distance import reference_signed_distance
     from test_bone_distance import box_mesh
     model, _ = chain_on_a_ball()
@@ -446,7 +446,7 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
     mm from the z faces): after the relaxation every free sphere is its radius plus the
     clearance outside the box (within the final passes' PenetrationTolerance), the strand
     that was inside on the +x side."""
-    from muscle_mss.core.bone_distance import signed_distances
+    from muscle_mss.core.bones.distance import signed_distances
     from reference_distance import reference_signed_distance
     model, box, solids, inside = chain_in_a_box(1.0)
     clearance = solids.clearance[0]
@@ -463,7 +463,7 @@ def test_paper_relaxation_pushes_a_lattice_out_of_a_solid_bone_on_the_near_side(
 
 
 def test_solid_bones_are_checked():
-    from muscle_mss.core.bone_field_sampling import bone_field_set
+    from muscle_mss.core.bones.field_sampling import bone_field_set
     from test_bone_distance import box_mesh
     model, _ = chain_on_a_ball()
     fields = bone_field_set([box_mesh([0, 0, 0], [1, 1, 1])])

@@ -8,7 +8,7 @@ from scipy.spatial import ConvexHull
 import bad_input_cases as B
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.fibre_pieces import joined_fibres
-from muscle_mss.core.muscle_overlap import vertices_in_other_muscles
+from muscle_mss.core.contacts.muscle_overlap import vertices_in_other_muscles
 
 
 def _csr(polylines):
@@ -143,7 +143,7 @@ def test_the_valid_scene_warns_of_nothing_and_reports_its_surfaces_overlap(folde
 
 
 def test_a_folded_surface_confirms_its_inside_vertices_by_winding_numbers():
-    from muscle_mss.core.muscle_overlap import turned_over
+    from muscle_mss.core.contacts.muscle_overlap import turned_over
     a, b = _sphere([0.0, 0, 0]), _sphere([15.0, 0, 0])
     assert not turned_over(b[0], b[0], b[1])
     folded = b[0].copy()

@@ -1,11 +1,11 @@
-"""The continuously differentiable lookup of the bone distance fields (core/smooth_distance.py)
+"""The continuously differentiable lookup of the bone distance fields (core/bones/smooth_distance.py)
 that the quasi-static contact energy uses."""
 import numpy as np
 from numba import njit
 
-from muscle_mss.core.bone_distance import sample
-from muscle_mss.core.bone_field_sampling import bone_field_set
-from muscle_mss.core.smooth_distance import smooth_sample
+from muscle_mss.core.bones.distance import sample
+from muscle_mss.core.bones.field_sampling import bone_field_set
+from muscle_mss.core.bones.smooth_distance import smooth_sample
 from test_bone_distance import box_mesh, sphere_mesh
 
 RADIUS = 20.0

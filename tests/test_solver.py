@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from muscle_mss.core import model as core_model, solver, spatial_hash
+from muscle_mss.core import model as core_model, solver
+from muscle_mss.core.contacts import spatial_hash
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.model import Bones
 from muscle_mss.core.settings import METHOD_RELAXATION, STRUCTURES, SolverSettings

@@ -8,7 +8,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.demo_geometry import tube_triangles
+from muscle_mss.core.demo.geometry import tube_triangles
 from muscle_mss.core.springs import (DELAUNAY_FALLBACK_EDGES, DELAUNAY_REACH, delaunay_springs,
                                      fibre_step, knn_springs, lattice_offsets, lattice_springs,
                                      rest_lengths, unique_springs)

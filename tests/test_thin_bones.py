@@ -10,7 +10,7 @@ Runs in the venv and in Debian's ParaView Python (about 30 s)."""
 import numpy as np
 import pytest
 
-from muscle_mss.core import demo_arm
+from muscle_mss.core.demo import arm as demo_arm
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import INSIDE_TOLERANCE

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from test_collisions import icosphere_like
 
-from muscle_mss.core.bone_spheres import bone_spheres
+from muscle_mss.core.bones.spheres import bone_spheres
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.penetration import max_penetration_pairs, max_penetration_per_object
+from muscle_mss.core.contacts.penetration import max_penetration_pairs, max_penetration_per_object
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.rigid_fit import rigid_fit
 from muscle_mss.filters import bone_sets, check_cache, motion_run, run_output
@@ -140,7 +140,7 @@ def test_a_bones_triangle_digest_is_remembered_until_its_cells_change():
 
 
 def test_fields_are_stored_on_disk_and_read_back_bitwise_by_a_later_run(tmp_path, monkeypatch):
-    from muscle_mss.core import field_store
+    from muscle_mss.core.bones import field_store
     monkeypatch.setenv(field_store.ENVIRONMENT, str(tmp_path))
     points, triangles = bone()
     sampled, _ = bone_sets.cached_bone_field(points, triangles)
@@ -217,7 +217,7 @@ def rng_noise(shape):
 
 @pytest.mark.parametrize("seed, cell_radii", [(1, 1.0), (2, 0.3), (3, 2.5)])
 def test_penetration_grid_equals_the_reference_bitwise(seed, cell_radii, monkeypatch):
-    from muscle_mss.core import penetration
+    from muscle_mss.core.contacts import penetration
     monkeypatch.setattr(penetration, "CELL_RADII", cell_radii)   # grids fine and coarse
     rng = np.random.default_rng(seed)
     n, k = 400, 120

@@ -9,9 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..bone_distance import BoneSolids, push_out_of_bones
+from ..bones.distance import BoneSolids, push_out_of_bones
 from ..connective_tissue import check_along, tissue_targets
-from ..contacts import collision_spheres, contact_setup, final_passes, solved_state, world_box
+from ..contacts.sphere_contacts import (collision_spheres, contact_setup, final_passes, solved_state,
+                                       world_box)
 from ..errors import MuscleMSSError, PoseError
 from ..model import (NO_BONES, Bones, MSSModel, PreparedModel, SolveResult, check_history_size,
                      prepare)
@@ -123,7 +124,7 @@ def contact_stiffness(model: MSSModel, prep: PreparedModel, pre, settings) -> np
 def push_out_of_solids(x, points, radius, solids: BoneSolids) -> None:
     """Move the particles ``points`` (k,) of ``x`` (3, n) out to their ``radius`` (k,) mm plus
     the clearance from each bone solid (the penalty leaves an overlap of contact force / w at
-    the minimum; :func:`~muscle_mss.core.bone_distance.push_out_of_bones`, bone by bone, twice
+    the minimum; :func:`~muscle_mss.core.bones.distance.push_out_of_bones`, bone by bone, twice
     over)."""
     b = len(solids.fields)
     for _ in range(2):

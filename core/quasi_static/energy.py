@@ -11,13 +11,13 @@ import time
 import numpy as np
 from numba import njit, prange
 
-from .. import spatial_hash
-from ..bone_distance import sample, to_rest
+from ..contacts import spatial_hash
+from ..bones.distance import sample, to_rest
 from ..connective_tissue import add_tissue_energy
 from ..mss import add_cage_gradient, cage_volume
-from ..smooth_distance import smooth_sample
+from ..bones.smooth_distance import smooth_sample
 from ..settings import SPRINGS_COROTATIONAL
-from ..solid_contacts import solid_points
+from ..contacts.solid_contacts import solid_points
 from .corotational import add_corotational_energy, corotational_state
 from .preconditioner import Preconditioner, model_springs, spring_order
 
@@ -71,7 +71,7 @@ def sphere_contact_energy(x, gradient, weight, particle, radius, fixed, mm_begin
               deepest):
     """The contact penalty of every muscle sphere against the spheres in its candidate lists
     (``mm_*`` other muscles' spheres, ``mb_*`` bone spheres, CSR as
-    :func:`~muscle_mss.core.spatial_hash.candidate_lists`), ``weight`` (n,) g/s^2 the contact
+    :func:`~muscle_mss.core.contacts.spatial_hash.candidate_lists`), ``weight`` (n,) g/s^2 the contact
     stiffness of each particle (a pair's the mean of its two): its gradient added to ``gradient``
     (3, n) at the sphere's particle (a free sphere only), per sphere the energy of its pairs
     (a muscle pair counted by its lower sphere) into ``sphere_energy`` (s,), the overlapping
@@ -134,7 +134,7 @@ def solid_contact_energy(x, gradient, weight, particle, radius, near_bones, clea
     max(0, r_i + clearance_b - d_b(c_i))^2`` (``w`` = ``weight`` (n,) g/s^2 at the sphere's
     particle) per bone ``b`` that ``near_bones[i, b]`` marks
     (the others are out of reach, :func:`near_solids`), ``d_b`` its signed distance
-    (continuously differentiable, :mod:`muscle_mss.core.smooth_distance`, so that no particle
+    (continuously differentiable, :mod:`muscle_mss.core.bones.smooth_distance`, so that no particle
     rests on a kink of the energy; ``grid`` the fields sampled in the bones' rest
     frames, ``transforms`` (b, 3, 4) rest to posed), pushing along the distance gradient from
     whatever depth. Added to ``gradient``; per sphere its energy, overlapping bones and deepest

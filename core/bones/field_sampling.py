@@ -1,5 +1,5 @@
 """Sampling each bone's signed distance field in its rest frame; the fields
-are looked up and points pushed out of bones by :mod:`.bone_distance`.
+are looked up and points pushed out of bones by :mod:`.bones.distance`.
 
 The bone's padded bounding box is cut into bricks of ``BRICK`` x ``BRICK`` x ``BRICK`` cells of
 ``spacing`` mm. A coarse grid of nodes ``COARSE * spacing`` mm apart over the whole box holds the
@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
-from .bone_distance import BRICK, COARSE, BoneDistanceField, BoneFieldSet
-from .errors import MuscleMSSError
-from .mesh_checks import checked_surface
+from .distance import BRICK, COARSE, BoneDistanceField, BoneFieldSet
+from ..errors import MuscleMSSError
+from ..mesh_checks import checked_surface
 from .triangle_distance import exact_at_bricks, exact_at_queries, prepared_surface, query_chunks
 
 DEFAULT_SPACING = 1.0

@@ -10,8 +10,8 @@ crest, pubis, ischium with the obturator foramen; femoral head, neck, trochanter
 aspera, condyles; tibial plateau, tuberosity, shaft, malleolus), meshed by marching tetrahedra.
 Muscles follow the paper's input (§3): a closed surface and fibres from origin to insertion, each
 a fusiform envelope around a centreline through anatomical way-points, packed against its
-neighbours and the bones (:mod:`.demo_geometry` holds the machinery shared with the elbow scene
-of :mod:`.demo_arm`).
+neighbours and the bones (:mod:`.demo.geometry` holds the machinery shared with the elbow scene
+of :mod:`.demo.arm`).
 
 The walking cycle rotates the femur about the hip centre (flexion / extension about the x axis)
 and the tibia additionally about the knee axis, after normative sagittal gait curves.
@@ -23,14 +23,14 @@ from functools import partial
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from .demo_geometry import (MuscleSpec as _MuscleSpec, Size as _Size,  # noqa: F401
+from .geometry import (MuscleSpec as _MuscleSpec, Size as _Size,  # noqa: F401
                             around, assemble_scene, compose as _compose,
                             ellipsoid as _ellipsoid, frame as _frame, rotation_about,
                             round_cone as _round_cone, size_named, smooth_union as _blend,
                             sphere as _sphere, v as _v)
 from .implicit_meshing import (SampledField, mesh_implicit, mesh_sampled,  # noqa: F401
                                project_to_surface)
-from .scene import Motion, Scene, Surface
+from ..scene import Motion, Scene, Surface
 
 HIP_CENTRE = np.array([0.0, 0.0, 0.0])
 """Centre of the femoral head (mm): the hip's centre of rotation."""
@@ -233,7 +233,7 @@ def _thigh_axis(z):
 
 
 _around = partial(around, _thigh_axis)
-"""``_around(z, theta_deg, rho)``: :func:`.demo_geometry.around` the thigh axis."""
+"""``_around(z, theta_deg, rho)``: :func:`.demo.geometry.around` the thigh axis."""
 
 
 _MUSCLES = {

@@ -1,5 +1,5 @@
 """Muscle particles against the bones as solids (each bone's signed distance field,
-:mod:`~muscle_mss.core.bone_distance`), for the paper relaxation's iterations and both methods'
+:mod:`~muscle_mss.core.bones.distance`), for the paper relaxation's iterations and both methods'
 final collision passes.
 
 A particle closer to a bone's surface than its sphere's radius plus the bone's clearance, or
@@ -15,8 +15,8 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from .bone_distance import BRICK, NO_SOLIDS, BoneSolids, FieldGrid, push_rest, sample, to_rest
-from .model import PreparedModel
+from ..bones.distance import BRICK, NO_SOLIDS, BoneSolids, FieldGrid, push_rest, sample, to_rest
+from ..model import PreparedModel
 
 # A particle whose distance to every solid bone exceeds its reach by a slack plus its move since
 # that distance was sampled times SOLID_LIPSCHITZ is clear of them without sampling: the
@@ -33,12 +33,12 @@ SolidState = namedtuple("SolidState", (
     "transforms", "clearance", "tolerance", "x", "points", "radius", "anchor", "margin", "slack",
     "disp", "collided", "count", "pen", "ptr"))
 SolidState.__doc__ = """The solid contacts' state for one solve, beside the bones' packed
-fields (:data:`~muscle_mss.core.bone_distance.FieldGrid`, :func:`solid_grid`). Flat, and apart
+fields (:data:`~muscle_mss.core.bones.distance.FieldGrid`, :func:`solid_grid`). Flat, and apart
 from the grid: it goes to parallel loops, and Numba cannot hand them a tuple nested in a tuple,
 nor (Numba 0.56) a named tuple of 16 fields or more ("CALL_FUNCTION_EX with **kwargs not
 supported").
 
-The bones (:meth:`~muscle_mss.core.bone_distance.BoneSolids.kernel_arguments`: ``transforms``
+The bones (:meth:`~muscle_mss.core.bones.distance.BoneSolids.kernel_arguments`: ``transforms``
 (b, 3, 4) field frame to posed, ``clearance`` (b,) mm and the push ``tolerance`` mm); the
 positions ``x`` (3, n) mm they read; the particles ``points`` (k,) of :func:`solid_points` with
 their sphere radii ``radius`` (k,) mm (0: none); the skip state of :func:`solid_contacts_range`

@@ -1,5 +1,5 @@
 """Muscle-muscle contacts through candidate lists refreshed sphere by sphere (the spatial hash's
-default for the muscles, :mod:`~muscle_mss.core.spatial_hash`).
+default for the muscles, :mod:`~muscle_mss.core.contacts.spatial_hash`).
 
 Each muscle sphere keeps a list of the spheres of other muscles within ``r_i + r_j + skin`` of
 it, both taken at their *reference* positions (where each stood when its own list was last
@@ -9,8 +9,8 @@ than ``skin / 2`` from its reference position; the others keep theirs. So any tw
 most ``skin`` closer than at their reference positions, and a pair missing from its owner's
 list cannot collide: the pairs found are exactly those of a brute-force test, while only the
 spheres that moved (near tendon attachments, say) pay for a grid query. The grid of reference
-positions is patched in place between rebuilds (:func:`~muscle_mss.core.spatial_hash.fill_grid`,
-:func:`~muscle_mss.core.spatial_hash.move_in_grid`).
+positions is patched in place between rebuilds (:func:`~muscle_mss.core.contacts.spatial_hash.fill_grid`,
+:func:`~muscle_mss.core.contacts.spatial_hash.move_in_grid`).
 """
 from __future__ import annotations
 

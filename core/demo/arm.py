@@ -11,7 +11,7 @@ at anatomical landmarks (glenoid, supra- and infraglenoid tubercles, coracoid, a
 and blade; humeral head, tubercles, shaft, supracondylar ridges, epicondyles, trochlea and
 capitulum; olecranon, coronoid process, ulnar tuberosity, ulnar shaft and head; radial head,
 neck, tuberosity, shaft and distal end with the styloid), meshed by marching tetrahedra
-(:mod:`.demo_geometry`, shared with the thigh of :mod:`.demo_scene`). Joint spaces of 2 mm keep
+(:mod:`.demo.geometry`, shared with the thigh of :mod:`.demo.scene`). Joint spaces of 2 mm keep
 the bones apart. Proportions are those of an adult arm: humerus about 320 mm from the head's top
 to the trochlea, ulna about 270 mm, radius about 240 mm.
 
@@ -40,10 +40,10 @@ from functools import partial
 
 import numpy as np
 
-from .demo_geometry import (MuscleSpec, Size, around, assemble_scene, ellipsoid, frame,
+from .geometry import (MuscleSpec, Size, around, assemble_scene, ellipsoid, frame,
                             rotation_about, round_cone, size_named, smooth_union, sphere, v)
 from .implicit_meshing import SampledField, project_to_surface
-from .scene import Motion, Scene
+from ..scene import Motion, Scene
 
 SHOULDER_CENTRE = v(0.0, 0.0, 0.0)
 """Centre of the humeral head (mm)."""
@@ -254,7 +254,7 @@ def _arm_axis(z):
 
 
 _around = partial(around, _arm_axis)
-"""``_around(z, theta_deg, rho)``: :func:`.demo_geometry.around` the arm's axis."""
+"""``_around(z, theta_deg, rho)``: :func:`.demo.geometry.around` the arm's axis."""
 
 
 _MUSCLES = {

@@ -2,7 +2,7 @@
 attachment landmarks on them.
 
 An implicit solid is a function of points (n, 3) mm, negative inside and roughly the signed
-distance in mm near its surface (:mod:`.demo_geometry`'s primitives). It is sampled on a regular
+distance in mm near its surface (:mod:`.demo.geometry`'s primitives). It is sampled on a regular
 grid (:class:`SampledField`) and meshed by marching tetrahedra on a Freudenthal (6-tetrahedra)
 subdivision of the grid: the level set of a piecewise-linear function with no zero at a grid
 node is a closed 2-manifold by construction (:func:`mesh_implicit`, :func:`mesh_sampled`).
@@ -17,7 +17,7 @@ from scipy.ndimage import map_coordinates
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .scene import Surface
+from ..scene import Surface
 
 # Freudenthal subdivision: one tetrahedron per permutation of the axes, walking from corner
 # (0,0,0) to (1,1,1). All cubes use the same six, so the tetrahedra of neighbouring cubes share

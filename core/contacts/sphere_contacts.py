@@ -3,17 +3,17 @@ the state of the two collision structures, detection and the paper's response, a
 collision passes that remove what overlap the iterations leave.
 
 Detection finds the overlapping spheres of different muscles and of a muscle sphere with a bone
-sphere through the chosen structure (:mod:`~muscle_mss.core.spatial_hash`, the default, or the
-paper's :mod:`~muscle_mss.core.octree_bvh`; both find the same pairs), or, given the bones as
-solids, tallies the contacts :mod:`~muscle_mss.core.solid_contacts` found. The response is the
+sphere through the chosen structure (:mod:`~muscle_mss.core.contacts.spatial_hash`, the default, or the
+paper's :mod:`~muscle_mss.core.contacts.octree_bvh`; both find the same pairs), or, given the bones as
+solids, tallies the contacts :mod:`~muscle_mss.core.contacts.solid_contacts` found. The response is the
 paper's: per colliding pair each sphere moves half the penetration along the centre line (the
 whole when the other is fixed or a bone sphere; nothing when it is fixed itself); the
 displacements are accumulated and applied after all tests, and the particles that collided
 stop.
 
 The kernels' state travels in named tuples (:class:`SphereState`, :class:`HashState`,
-:class:`CandidateLists`, :class:`~muscle_mss.core.octree_bvh.OctreeBVH`,
-:class:`~muscle_mss.core.solid_contacts.SolidState`): flat, because Numba cannot hand a tuple
+:class:`CandidateLists`, :class:`~muscle_mss.core.contacts.octree_bvh.OctreeBVH`,
+:class:`~muscle_mss.core.contacts.solid_contacts.SolidState`): flat, because Numba cannot hand a tuple
 nested in a tuple to a parallel loop.
 """
 from __future__ import annotations
@@ -26,9 +26,9 @@ import numpy as np
 from numba import njit, prange
 
 from . import octree_bvh, spatial_hash, sphere_lists
-from .model import PreparedModel
+from ..model import PreparedModel
 from .collision_spheres import Spheres, make_spheres
-from .settings import STRUCTURE_BVH, SolverSettings
+from ..settings import STRUCTURE_BVH, SolverSettings
 from .solid_contacts import respond_solids, solid_contacts, solid_grid, solid_state
 
 # The final collision passes (:func:`project`) stop after this many passes in which the sum of
@@ -67,17 +67,17 @@ room)."""
 
 CandidateLists = namedtuple("CandidateLists", ("muscle", "mb_begin", "mb_end", "mb_idx", "room"))
 CandidateLists.__doc__ = """The spatial hash's candidate lists, replaced when they outgrow their
-room: ``muscle`` the muscle-muscle lists (:func:`~muscle_mss.core.sphere_lists.muscle_lists`),
+room: ``muscle`` the muscle-muscle lists (:func:`~muscle_mss.core.contacts.sphere_lists.muscle_lists`),
 and each muscle sphere's own list of bone spheres ``mb_idx[mb_begin[i]:mb_end[i]]`` in its
 ``room`` slots."""
 
 Contacts = namedtuple("Contacts", ("spheres", "hashed", "bone_table", "bvh", "solids", "grid"))
 Contacts.__doc__ = """Everything the contact kernels read and write in one solve:
 :class:`SphereState`, :class:`HashState`, the bone spheres' grid (built once:
-:func:`~muscle_mss.core.spatial_hash.grid_table`), the octree BVH
-(:class:`~muscle_mss.core.octree_bvh.OctreeBVH`) and the solid contacts
-(:class:`~muscle_mss.core.solid_contacts.SolidState`) with the bones' fields ``grid``
-(:func:`~muscle_mss.core.solid_contacts.solid_grid`). Its parts go to parallel kernels one by
+:func:`~muscle_mss.core.contacts.spatial_hash.grid_table`), the octree BVH
+(:class:`~muscle_mss.core.contacts.octree_bvh.OctreeBVH`) and the solid contacts
+(:class:`~muscle_mss.core.contacts.solid_contacts.SolidState`) with the bones' fields ``grid``
+(:func:`~muscle_mss.core.contacts.solid_contacts.solid_grid`). Its parts go to parallel kernels one by
 one: Numba cannot hand a tuple nested in a tuple to a parallel loop."""
 
 ContactOptions = namedtuple("ContactOptions", ("use_bvh", "muscle_muscle", "muscle_bone"))
@@ -113,7 +113,7 @@ def hash_state(spheres: Spheres, used: bool):
     """``(HashState, bone table, CandidateLists)`` of the spatial hash: the bone table is built here once
     (bones do not move during a solve); the candidate lists in the first iteration
     (muscle-muscle lists then refreshed sphere by sphere,
-    :func:`~muscle_mss.core.sphere_lists.muscle_contacts`). Empty when not ``used``."""
+    :func:`~muscle_mss.core.contacts.sphere_lists.muscle_contacts`). Empty when not ``used``."""
     ns = spheres.count
     skin = spatial_hash.skin_width(spheres, per_sphere=True)
     bone_object = spheres.bone + spheres.n_muscles
@@ -213,7 +213,7 @@ def _bvh_contacts(spheres, bvh, options, use_solids):
 
 def _bone_list_contacts(spheres, hashed, table, lists):
     """The muscle spheres against the bone spheres through their own candidate lists
-    (:func:`~muscle_mss.core.spatial_hash.own_list_contacts`), the lists grown and the pending
+    (:func:`~muscle_mss.core.contacts.spatial_hash.own_list_contacts`), the lists grown and the pending
     spheres tested again when one outgrew its room. Returns the lists. Python: called with the
     lists' tuple of 22 arrays, a kernel cost tens of microseconds an iteration to call."""
     room, mb_idx = lists.room, lists.mb_idx
@@ -245,7 +245,7 @@ def collide(contacts, options, lists, bvh, bone_table):
     """Collision detection at the gathered sphere centres: each collided sphere's displacement
     by the paper's response into ``spheres.disp``, ``spheres.collided`` set (both cleared by
     the gather); the bones as sphere sets, or as solids (tallied from what
-    :func:`~muscle_mss.core.solid_contacts.solid_contacts` found) when ``solids`` has bones.
+    :func:`~muscle_mss.core.contacts.solid_contacts.solid_contacts` found) when ``solids`` has bones.
     Returns ``(muscle pairs, bone pairs, deepest penetration before the response mm, seconds
     of muscle CD, seconds of bone CD, spheres whose lists were refreshed, lists)``; keep the
     returned :class:`CandidateLists` (grown when they outgrow their room). ``contacts`` a
@@ -327,7 +327,7 @@ def project(x, v, contacts, options, passes, tolerance, lists, ever_collided, so
     pushes of the overlaps that can be resolved shrink geometrically.
     ``ever_collided`` (n_spheres,) gets the spheres that collided in any pass, ``solid_ever``
     the solid-contact particles that met a solid bone (``box`` (2, 3) mm: the world box, as
-    for :func:`~muscle_mss.core.solid_contacts.solid_contacts`). Returns ``(passes run,
+    for :func:`~muscle_mss.core.contacts.solid_contacts.solid_contacts`). Returns ``(passes run,
     deepest penetration left mm, lists)``: the deepest left is that found by the last pass
     before its response, 0 when nothing collided. A Python loop around the kernels: passes are
     few, and a compiled loop compiled :func:`collide` a second time."""

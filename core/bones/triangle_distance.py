@@ -1,5 +1,5 @@
 """Exact signed distance to a closed triangle surface (the ground truth of the bones' sampled
-fields, :mod:`.bone_distance`).
+fields, :mod:`.bones.distance`).
 
 The distance of a point is that to its nearest triangle: Ericson's closest point on a triangle
 (Real-Time Collision Detection §5.1.5), the nearest triangle found in a bounding volume
@@ -24,9 +24,9 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .disk_store import array_digest
-from .errors import MuscleMSSError
-from .mesh_checks import checked_surface, surface_problems
+from ..disk_store import array_digest
+from ..errors import MuscleMSSError
+from ..mesh_checks import checked_surface, surface_problems
 
 LEAF_SIZE = 4
 """Triangles per leaf of the bounding volume hierarchy at most."""
@@ -407,7 +407,7 @@ def inside_surface(points, triangles, queries, sampled, error_bound, where="surf
     """(q,) bool: which ``queries`` (q, 3) mm are inside the closed surface ``points``,
     ``triangles`` (its exact signed distance below 0), given ``sampled`` (q,) mm, their distance
     looked up in the surface's field, whose
-    :attr:`~muscle_mss.core.bone_distance.BoneDistanceField.error_bound` is ``error_bound`` mm:
+    :attr:`~muscle_mss.core.bones.distance.BoneDistanceField.error_bound` is ``error_bound`` mm:
     only the queries that the sampled value does not place farther out than that are measured
     exactly (the Spring Builder and the Rigid Pose Transform test every particle of the model
     against every bone: 0.6 s of the first time point at N = 80)."""

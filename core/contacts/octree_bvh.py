@@ -11,7 +11,7 @@ Each muscle is tested against every other muscle and every bone by a simultaneou
 two trees: overlapping boxes are split (the larger box first) until a node is at the maximum
 depth or holds at most the minimum number of spheres (the paper's 8 and 10); two such nodes are
 tested sphere against sphere. Boxes bound the spheres (centre +- radius), so no colliding pair is
-missed: this finds exactly the pairs of :mod:`muscle_mss.core.spatial_hash`.
+missed: this finds exactly the pairs of :mod:`muscle_mss.core.contacts.spatial_hash`.
 
 Like the paper's, this structure runs on one thread. The response is that of
 :mod:`muscle_mss.core.mss` (one push per sphere and other object, from its deepest pair), added
@@ -283,7 +283,7 @@ def colliding_pairs(centres, bvh: OctreeBVH):
     """The colliding pairs found through the octree BVH, for muscle sphere centres (m, 3) mm.
 
     Returns ``(muscle_pairs (P, 2), bone_pairs (Q, 2))`` int64 sorted, in the same form as
-    :func:`muscle_mss.core.spatial_hash.colliding_pairs` (bone spheres numbered from 0).
+    :func:`muscle_mss.core.contacts.spatial_hash.colliding_pairs` (bone spheres numbered from 0).
     """
     m = bvh.n_muscle_spheres
     bvh.centres[:, :m] = np.asarray(centres, dtype=np.float64).reshape(-1, 3).T

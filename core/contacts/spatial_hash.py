@@ -10,7 +10,7 @@ reaches. A sphere lists the spheres of *other* objects within ``r_i + r_j + skin
 refreshes only those candidates are tested exactly, so the colliding pairs found are exactly
 those of a brute-force test as long as the lists are complete:
 
-* muscle-muscle (:func:`~muscle_mss.core.sphere_lists.muscle_contacts`): each sphere refreshes its own list when it has
+* muscle-muscle (:func:`~muscle_mss.core.contacts.sphere_lists.muscle_contacts`): each sphere refreshes its own list when it has
   moved more than ``skin / 2`` from where its list was built (its reference position), and a
   pair is tested from the list refreshed last; spheres that jitter near tendon attachments pay
   for their own queries while the others keep their lists. The grid of reference positions is
@@ -23,7 +23,7 @@ Every parallel loop over spheres is a ``prange`` in which sphere ``i`` only writ
 entries (its candidates, its displacement): no atomics, and sums in a fixed order, so results
 do not depend on the thread count. Small bookkeeping passes run serially: waking the second
 thread costs more than they do on a busy machine. The exact test and the response rule are
-those of :mod:`muscle_mss.core.mss`, shared with :mod:`muscle_mss.core.octree_bvh`.
+those of :mod:`muscle_mss.core.mss`, shared with :mod:`muscle_mss.core.contacts.octree_bvh`.
 """
 from __future__ import annotations
 
@@ -355,8 +355,8 @@ def _own_list_contacts(query, q_radius, fixed, q_object, table, skin, built, beg
 @njit(cache=True)
 def own_list_contacts(spheres, hashed, table, begin, end, idx, room, retry):
     """Collisions of the muscle spheres of ``spheres``
-    (:class:`~muscle_mss.core.contacts.SphereState`) with the bone spheres of ``hashed``
-    (:class:`~muscle_mss.core.contacts.HashState`) through the lists each sphere keeps on its own
+    (:class:`~muscle_mss.core.contacts.sphere_contacts.SphereState`) with the bone spheres of ``hashed``
+    (:class:`~muscle_mss.core.contacts.sphere_contacts.HashState`) through the lists each sphere keeps on its own
     (:func:`_own_list_contacts`, whose arguments are the tuples' arrays: Numba's parallel loops
     lost writes to arrays taken out of a tuple), from the bones' grid ``table``. Returns the
     longest list found (above ``room``: call again with ``retry``)."""

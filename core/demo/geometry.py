@@ -1,7 +1,7 @@
 """Shared geometry of the demo scenes (DESIGN §4): implicit solids and muscles built around a limb
 axis.
 
-The thigh (:mod:`.demo_scene`) and the elbow (:mod:`.demo_arm`) are made the same way, so the
+The thigh (:mod:`.demo.scene`) and the elbow (:mod:`.demo.arm`) are made the same way, so the
 machinery lives here once:
 
 * implicit primitives (negative inside, roughly the signed distance in mm near the surface) and
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from .errors import MuscleMSSError
+from ..errors import MuscleMSSError
 from .implicit_meshing import mesh_sampled
-from .scene import FibreSet, Scene, Surface
+from ..scene import FibreSet, Scene, Surface
 
 
 @dataclass(frozen=True)

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .triangle_distance import (TriangleMesh, _hierarchy, _pseudo_normals, exact_at_queries,
+from ..bones.triangle_distance import (TriangleMesh, _hierarchy, _pseudo_normals, exact_at_queries,
                                 query_chunks)
-from .volume import winding_numbers
+from ..volume import winding_numbers
 
 INSIDE_DEPTH = 1e-3
 """mm: a vertex counts as inside another muscle when deeper than this (as for the bones)."""

@@ -1,6 +1,6 @@
 """Exact distances to the bones where the sampled fields are not exact enough.
 
-The bones' sampled signed distance fields (:mod:`.bone_distance`) are within about half a fine
+The bones' sampled signed distance fields (:mod:`.bones.distance`) are within about half a fine
 cell of the exact distance on smooth bone, but farther next to thin or sharp features: on an
 elbow scene at 130 degrees the fields put every pushed surface vertex out of the forearm bones
 while the bones' triangles found vertices 2.6 mm inside. So what is inside a bone, and how deep,
@@ -8,7 +8,7 @@ is decided by the triangles: the fields choose the candidates (every point whose
 distance is not farther out than the field's error bound, :meth:`.BoneFieldSet.error_bounds`)
 and :func:`.triangle_distance.closest_points` measures them in the bone's rest frame.
 
-:func:`exact_signed_distances` is :func:`.bone_distance.signed_distances` with those values
+:func:`exact_signed_distances` is :func:`.bones.distance.signed_distances` with those values
 exact; :func:`push_out_exactly` moves each point that is exactly inside a bone it is checked
 against to the closest point of that bone's surface plus :data:`EXACT_CLEARANCE` (the exact
 answer of "push it out onto the surface", in one step), bone after bone, until none is inside.
@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .bone_distance import BoneFieldSet, signed_distances
-from .errors import checked_points
-from .solid_contacts import kept_out_of_solids
+from .distance import BoneFieldSet, signed_distances
+from ..errors import checked_points
+from ..contacts.solid_contacts import kept_out_of_solids
 from .triangle_distance import closest_points
 
 EXACT_CLEARANCE = 2e-3

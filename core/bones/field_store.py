@@ -1,6 +1,6 @@
 """Bones' signed distance fields kept on disk between runs.
 
-Sampling a bone's field (:func:`muscle_mss.core.bone_field_sampling.bone_distance_field`) takes
+Sampling a bone's field (:func:`muscle_mss.core.bones.field_sampling.bone_distance_field`) takes
 2-4 s per bone of the demo thigh, paid at the first time point of every ``muscle-mss run`` and
 every ParaView session although the bones of a scene rarely change. A field is stored
 per bone surface, keyed by its triangles and its points bitwise, in a
@@ -20,15 +20,14 @@ from __future__ import annotations
 
 import os
 
-from .bone_distance import BoneDistanceField
-from .disk_store import DiskStore
+from .distance import BoneDistanceField
+from ..disk_store import DiskStore
 
 ENVIRONMENT = "MUSCLE_MSS_BONE_FIELDS"
 MAX_FILES = 64
 _ARRAYS = ("origin", "dims", "coarse", "brick_index", "bricks")
 SAMPLER_SOURCES = tuple(os.path.join(os.path.dirname(os.path.abspath(__file__)), name)
-                        for name in ("bone_distance.py", "bone_field_sampling.py",
-                                     "triangle_distance.py"))
+                        for name in ("distance.py", "field_sampling.py", "triangle_distance.py"))
 """The source files whose bytes key the store: a field sampled by other code is not read."""
 STORE = DiskStore("bone-fields", ENVIRONMENT, SAMPLER_SOURCES, MAX_FILES)
 
@@ -39,7 +38,7 @@ def store_folder() -> str | None:
 
 
 def load(key: str) -> BoneDistanceField | None:
-    """The stored field of surface ``key`` (:func:`~muscle_mss.core.triangle_distance.
+    """The stored field of surface ``key`` (:func:`~muscle_mss.core.bones.triangle_distance.
     surface_digest`), or None when the store is off, holds none, or its file cannot be read."""
     stored = STORE.load(key, ("spacing",) + _ARRAYS)
     if stored is None:

@@ -1,7 +1,7 @@
 """A continuously differentiable lookup of the bones' signed distance fields, for the
 quasi-static solve's contact energy.
 
-:func:`~muscle_mss.core.bone_distance.sample` interpolates trilinearly: its value is continuous
+:func:`~muscle_mss.core.bones.distance.sample` interpolates trilinearly: its value is continuous
 but its gradient jumps at every cell face. The quasi-static method's bone penalty ``w / 2 (r -
 d)^2`` then has a gradient that jumps with it, and a particle pressed into a bone can come to
 rest on a cell face where the push from one side and the other disagree: on the demo thigh at
@@ -14,7 +14,7 @@ fine nodes' values (the trilinear interpolant smoothed by a box of one cell): co
 continuous gradient everywhere, exact for a linear distance (a flat bone surface), within about
 ``spacing^2 / (8 R)`` mm of the trilinear value near a surface of radius of curvature ``R``.
 A node of a brick that holds no fine values takes the coarse grid's trilinear value there.
-Outside the sampled box it continues as :func:`~muscle_mss.core.bone_distance.sample` does.
+Outside the sampled box it continues as :func:`~muscle_mss.core.bones.distance.sample` does.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ import math
 
 from numba import njit
 
-from .bone_distance import BRICK, COARSE, _trilinear
+from .distance import BRICK, COARSE, _trilinear
 
 
 @njit(cache=True)
@@ -85,8 +85,8 @@ def _smooth_inside_box(b, ux, uy, uz, grid):
 @njit(cache=True)
 def smooth_sample(b, qx, qy, qz, grid):
     """Signed distance (mm) and its gradient at rest-frame point q of bone b of ``grid``
-    (:data:`~muscle_mss.core.bone_distance.FieldGrid`), continuously differentiable (module
-    docstring); outside the sampled box as :func:`~muscle_mss.core.bone_distance.sample`."""
+    (:data:`~muscle_mss.core.bones.distance.FieldGrid`), continuously differentiable (module
+    docstring); outside the sampled box as :func:`~muscle_mss.core.bones.distance.sample`."""
     origin, dims = grid.origin, grid.dims
     h = grid.spacing[b]
     ux = (qx - origin[b, 0]) / h

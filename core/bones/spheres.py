@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .errors import MuscleMSSError, check_memory
-from .mesh_checks import checked_surface
+from ..errors import MuscleMSSError, check_memory
+from ..mesh_checks import checked_surface
 
 DEFAULT_SPACING = 2.05          # mm: ~8,600 spheres on the demo pelvis (paper: 8527)
 SPHERES_PER_AREA = 0.62         # centres ~ SPHERES_PER_AREA * area / spacing^2

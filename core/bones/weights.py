@@ -14,9 +14,9 @@ import numba
 import numpy as np
 from numba import prange
 
-from .errors import MuscleMSSError
-from .mesh_checks import checked_surface
-from .pose import checked_positions
+from ..errors import MuscleMSSError
+from ..mesh_checks import checked_surface
+from ..pose import checked_positions
 
 TRIANGLES_PER_CELL = 32
 """Aimed-for number of triangles in one cell of the distance search."""

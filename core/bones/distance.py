@@ -6,7 +6,7 @@ distance field, sampled once in the bone's rest frame from its closed triangle s
 rigidly with the bone's 3x4 transform: a query point is mapped to the rest frame
 (``q = R^T (x - t)``) and looked up there.
 
-Sampling (:func:`~muscle_mss.core.bone_field_sampling.bone_distance_field`): the bone's padded
+Sampling (:func:`~muscle_mss.core.bones.field_sampling.bone_distance_field`): the bone's padded
 bounding box is cut into bricks of ``BRICK`` x ``BRICK`` x ``BRICK`` cells of ``spacing`` mm; a
 coarse grid of nodes ``COARSE * spacing`` mm apart covers the whole box, and the bricks near the
 surface hold fine nodes ``spacing`` mm apart (:class:`BoneDistanceField`). Values are float32
@@ -27,7 +27,7 @@ interpolated one). The module stands apart from the solver; ``muscle_mss.filters
 deformed muscle surfaces out of bones.
 
 For a solver: build the set once per rest bones
-(:func:`~muscle_mss.core.bone_field_sampling.bone_field_set`, or the MVC
+(:func:`~muscle_mss.core.bones.field_sampling.bone_field_set`, or the MVC
 Surface Deformer's cached ``bone_fields``), and per pose call ``push_out_of_bones(fields,
 centres, radii, transforms, active=~fixed)`` with the bones' (b, 3, 4) rest-to-posed
 transforms (``muscle_mss.core.pose.pose_at``); add the returned (n, 3) displacements. Inside a
@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from .errors import MuscleMSSError, checked_points
+from ..errors import MuscleMSSError, checked_points
 
 BRICK = 8
 """Cells per brick edge: a fine brick holds ``(BRICK + 1)^3`` float32 values."""
@@ -117,7 +117,7 @@ class BoneFieldSet:
     surfaces: tuple = ()
     """Each bone's closed triangle surface in its field's frame, prepared for exact distances
     (:class:`.triangle_distance.PreparedSurface`) where the fields are not exact enough
-    (:mod:`.exact_bone_distance`); empty when the caller did not give them."""
+    (:mod:`.bones.exact_distance`); empty when the caller did not give them."""
 
     @classmethod
     def pack(cls, fields, names=None, surfaces=()) -> "BoneFieldSet":
@@ -410,7 +410,7 @@ def push_out_of_bones(fields: BoneFieldSet, points, radii=None, transforms=None,
     Parameters
     ----------
     fields : BoneFieldSet
-        The bones' fields (:func:`.bone_field_sampling.bone_field_set`), b bones.
+        The bones' fields (:func:`.bones.field_sampling.bone_field_set`), b bones.
     points : (n, 3) float64 mm
         Posed positions: collision sphere centres, or surface vertices.
     radii : (n,) float64 mm, optional
