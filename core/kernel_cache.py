@@ -96,14 +96,18 @@ def _core_folder() -> str:
 
 
 def core_stamps(folder: str | None = None) -> dict:
-    """``{file name: [mtime, size]}`` of the core's ``.py`` files: what Numba checks a cached
-    kernel against (besides its own folder key)."""
+    """``{relative path: [mtime, size]}`` of the ``.py`` files of the core and its subpackages:
+    what Numba checks a cached kernel against (besides its own folder key)."""
     folder = folder or _core_folder()
     stamps = {}
-    for name in sorted(os.listdir(folder)):
-        if name.endswith(".py"):
-            st = os.stat(os.path.join(folder, name))
-            stamps[name] = [st.st_mtime, st.st_size]
+    for root, dirs, files in os.walk(folder):
+        dirs[:] = sorted(d for d in dirs if not d.startswith((".", "__")))
+        for name in sorted(files):
+            if name.endswith(".py"):
+                path = os.path.join(root, name)
+                st = os.stat(path)
+                stamps[os.path.relpath(path, folder).replace(os.sep, "/")] = [st.st_mtime,
+                                                                             st.st_size]
     return stamps
 
 
