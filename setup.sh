@@ -42,8 +42,8 @@ m.version('tbb')" >/dev/null 2>&1; then
 fi
 
 # Each Python keeps its kernels in a cache folder of its own (README "The first run").
-venv_warm_up=(.venv/bin/python -m muscle_mss.filters.warm_up --quiet)
-debian_warm_up=(env PYTHONPATH="$PWD/plugin/shim" /usr/bin/python3 -m muscle_mss.filters.warm_up
+venv_warm_up=(.venv/bin/python -m muscle_mss.app.warm_up --quiet)
+debian_warm_up=(env PYTHONPATH="$PWD/plugin/shim" /usr/bin/python3 -m muscle_mss.app.warm_up
                 --quiet)
 lock=.venv/warm-up.lock
 if [ "${1:-}" = "--background" ] && [ "$(nproc)" -ge 2 ]; then

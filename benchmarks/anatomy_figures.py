@@ -19,7 +19,7 @@ import numpy as np
 
 from muscle_mss.core.pose import pose_at
 from muscle_mss.filters import array_names as A
-from muscle_mss.filters import motion_run
+from muscle_mss.app import motion_run
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.scene_io import load_scene, read_scene
 

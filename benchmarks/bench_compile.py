@@ -2,7 +2,7 @@
 
 For each Python that runs the kernels (the venv's, and Debian's with plugin/shim on PYTHONPATH
 as ./test.sh and ParaView run it), a fresh process with ``NUMBA_CACHE_DIR`` pointing at an empty
-temporary folder runs the warm-up (``muscle_mss.filters.warm_up``: tiny solves through the
+temporary folder runs the warm-up (``muscle_mss.app.warm_up``: tiny solves through the
 whole filter chain for every variant, which call every kernel a run can reach, with a real run's
 argument types) and records Numba's ``numba:compile`` events. A kernel compiles its callees
 while it is typed, inside its own compile, so each kernel is given its own seconds: its compile
@@ -65,7 +65,7 @@ def measure() -> dict:
                 stack[-1][2] += seconds
 
     start = time.perf_counter()
-    from muscle_mss.filters import warm_up    # imports VTK, NumPy, Numba: outside the compiles
+    from muscle_mss.app import warm_up    # imports VTK, NumPy, Numba: outside the compiles
     imported = time.perf_counter() - start
     with event.install_listener("numba:compile", Own()):
         start = time.perf_counter()
@@ -131,7 +131,7 @@ def table(results: dict) -> list:
     lines = ["# Compile time of the numeric kernels, per kernel and Python (issue 27)", "",
              f"Machine: {cpu_model()}, {os.cpu_count()} cores. "
              "`python benchmarks/bench_compile.py`: each Python in a fresh process with an empty "
-             "kernel cache runs the warm-up (`python -m muscle_mss.filters.warm_up`: tiny solves "
+             "kernel cache runs the warm-up (`python -m muscle_mss.app.warm_up`: tiny solves "
              "of every variant through the filter chain), one Python after the other. A "
              "kernel's seconds are its own compile's, less those of the kernels it compiled "
              "within it, over all its signatures (the count in brackets where more than one). "

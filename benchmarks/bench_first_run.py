@@ -7,7 +7,7 @@ prints (progress bars included). Two ways, one after the other:
 
 - **as the demo runs it**: the default settings' kernels compile in a second process while the
   demo writes its scene and prepares its first time point (``warm_up.compiling_beside``);
-- **compile first**: ``python -m muscle_mss.filters.warm_up --defaults``, then the demo (the
+- **compile first**: ``python -m muscle_mss.app.warm_up --defaults``, then the demo (the
   order before the overlap), for the ratio.
 
 ``./demo.sh`` adds its own checks (about a second when everything is installed) and the apt-get
@@ -68,7 +68,7 @@ def one_run(compile_first: bool) -> dict:
         env.update(XDG_CACHE_HOME=cache, PYTHONUNBUFFERED="1")
         shift = 0.0
         if compile_first:
-            shift = timed_lines([VENV / "python", "-m", "muscle_mss.filters.warm_up",
+            shift = timed_lines([VENV / "python", "-m", "muscle_mss.app.warm_up",
                                  "--defaults"], env)["compiled"]
         seen = timed_lines([VENV / "muscle-mss", "demo", out], env)
         if compile_first:

@@ -50,7 +50,7 @@ from muscle_mss.filters.bone_sets import bone_sphere_set
 from muscle_mss.filters.bone_sets import solid_bones
 from muscle_mss.filters.collision_solver import MSSCollisionSolver
 from muscle_mss.filters.model_blocks import muscle_block
-from muscle_mss.filters.motion_run import build_pipeline, update_at
+from muscle_mss.app.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
 from bench_solver import machine, write_result

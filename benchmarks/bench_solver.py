@@ -31,7 +31,7 @@ from muscle_mss.core.settings import METHOD_RELAXATION, STRUCTURES, SolverSettin
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.collision_solver import MSSCollisionSolver
 from muscle_mss.filters.model_blocks import muscle_block
-from muscle_mss.filters.motion_run import build_pipeline, update_at
+from muscle_mss.app.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
 from bench_results import cpu_model, write_result

@@ -1,7 +1,7 @@
 """Benchmark of one time point of a motion run, part by part (issue 15).
 
 The full demo thigh (13 muscles x 64 fibres, lattice-26, 500 iterations) and the full demo elbow
-(7 muscles, 4 bones) are run through the CLI's pipeline (:mod:`muscle_mss.filters.motion_run`)
+(7 muscles, 4 bones) are run through the CLI's pipeline (:mod:`muscle_mss.app.motion_run`)
 at N = 20 and 80 particles per fibre. For each time point the pipeline is updated stage by stage
 and each stage timed: pose (Rigid Pose Transform), solver setup (the MSS Collision Solver's
 update less its iterations), iterations (the solver's iteration loop), MVC (MVC Surface
@@ -29,9 +29,10 @@ import numpy as np
 
 from muscle_mss.core.contacts import penetration as P
 from muscle_mss.core import relaxation
-from muscle_mss.filters import bone_sets, motion_run, run_output
-from muscle_mss.filters.cli import DEMO_REGIONS, demo_region_scene
-from muscle_mss.filters.motion_run import build_pipeline, update_at
+from muscle_mss.filters import bone_sets
+from muscle_mss.app import motion_run, run_output
+from muscle_mss.app.cli import DEMO_REGIONS, demo_region_scene
+from muscle_mss.app.motion_run import build_pipeline, update_at
 from muscle_mss.filters.mvc_surface_deformer import weight_counts
 from muscle_mss.filters.scene_io import write_scene
 

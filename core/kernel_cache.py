@@ -79,7 +79,7 @@ def use_kernel_cache_dir() -> str:
 
 
 EVERY_KERNEL, DEFAULT_KERNELS = "every kernel", "the default settings' kernels"
-"""What a warm-up compiles (:mod:`muscle_mss.filters.warm_up`): every kernel, or only those a
+"""What a warm-up compiles (:mod:`muscle_mss.app.warm_up`): every kernel, or only those a
 run with the default settings calls (the demo's, compiled first by ``./demo.sh``). Each has a
 marker of its own; every kernel compiled covers the default settings' too."""
 COMPILE_SECONDS = {EVERY_KERNEL: 85.0, DEFAULT_KERNELS: 50.0}

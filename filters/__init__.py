@@ -5,7 +5,7 @@ MSSCollisionSolver, MVCSurfaceDeformer, VolumeErrorProbe, read_scene``
 
 Names are imported on first use, so importing one filter does not import them all. Taking a
 filter class from here is a script's entry point: when this Python's kernels are not compiled
-yet, it says so and compiles them first (:func:`~muscle_mss.filters.warm_up.ensure_compiled`);
+yet, it says so and compiles them first (:func:`~muscle_mss.app.warm_up.ensure_compiled`);
 the filters' own modules, the CLI, the batch and the ParaView proxies import the classes from
 their modules.
 """
@@ -37,7 +37,7 @@ def __getattr__(name):
     if name in EXPORTS:
         module = importlib.import_module(f".{EXPORTS[name]}", __name__)
         if name in FILTER_NAMES:
-            from .warm_up import ensure_compiled, output_window_notice
+            from muscle_mss.app.warm_up import ensure_compiled, output_window_notice
             ensure_compiled(output_window_notice)
         return getattr(module, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

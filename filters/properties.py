@@ -6,7 +6,7 @@ plain VTK, and ``muscle_mss.plugin`` generates the ParaView declarations (name, 
 enumeration, tooltip, panel group). A row may also name the core setting it fills (``field``, a
 :class:`~muscle_mss.core.settings.SolverSettings` field: the filter's ``settings()`` is built
 from these) and its command-line :class:`Option` (``muscle-mss run`` / ``demo`` and the batch:
-:mod:`muscle_mss.filters.run_options` builds the options from these), so that a new setting is
+:mod:`muscle_mss.app.run_options` builds the options from these), so that a new setting is
 one row plus its use. The ``name`` is the ParaView property name, the Python attribute in
 ``paraview.simple`` and the key in state files: never rename one casually.
 """

@@ -7,12 +7,12 @@
 
 (with ``plugin/shim`` on PYTHONPATH for Debian's ParaView 5.11, see the README). Writes the
 ``.pvd`` series of deformed surfaces, fibres and particles and ``OUT/summary.csv``
-(``muscle_mss.filters.run_output``). Under MPI rank r of K computes the r-th of K contiguous
+(``muscle_mss.app.run_output``). Under MPI rank r of K computes the r-th of K contiguous
 blocks of time points in time order; every time point starts from its posed state, so the
 ranks give the serial run's results (with the solver's ``WarmStart`` on, the quasi-static method
 would start each from the one before it within its block). ``--study`` writes the paper's
 experiments and the fibre-length study instead, as ``muscle-mss study`` does
-(``OUT/report.html``, :mod:`muscle_mss.filters.study`), in one process.
+(``OUT/report.html``, :mod:`muscle_mss.app.study`), in one process.
 """
 import argparse
 import contextlib
@@ -23,9 +23,9 @@ import sys
 
 
 def parse_args(argv):
-    """The batch's options: the CLI's run options (:mod:`muscle_mss.filters.run_options`) and
+    """The batch's options: the CLI's run options (:mod:`muscle_mss.app.run_options`) and
     ``--overwrite``. Imports the package, so that numba loads: set NUMBA_NUM_THREADS first."""
-    from muscle_mss.filters.run_options import add_run_options
+    from muscle_mss.app.run_options import add_run_options
     parser = argparse.ArgumentParser(prog="muscle_mss.plugin.batch", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scene", help="scene folder")
@@ -43,10 +43,10 @@ def parse_args(argv):
 
 
 def _study(args, size) -> int:
-    """``--study``: the report of :mod:`muscle_mss.filters.study`, in this one process."""
+    """``--study``: the report of :mod:`muscle_mss.app.study`, in this one process."""
     from muscle_mss.core.errors import MuscleMSSError
-    from muscle_mss.filters.cli import held_output_folder, study_into
-    from muscle_mss.filters.run_options import study_ignored
+    from muscle_mss.app.cli import held_output_folder, study_into
+    from muscle_mss.app.run_options import study_ignored
     ignored = study_ignored(args)
     problem = ("the study runs in one process: start it with pvpython, not under mpiexec"
                if size > 1 else f"{', '.join(ignored)} do not apply to --study (it runs "
@@ -81,13 +81,13 @@ def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
 
     from muscle_mss.core.errors import MuscleMSSError
-    from muscle_mss.filters import run_output
-    from muscle_mss.filters.run_options import settings_from, writing_from
+    from muscle_mss.app import run_output
+    from muscle_mss.app.run_options import settings_from, writing_from
 
     # Rank 0 compiles the kernels once (when this Python's cache is cold) while the others
     # wait in _any_rank below, then load them from the cache instead of each compiling.
     if rank == 0:
-        from muscle_mss.filters.warm_up import ensure_compiled, stderr_notice
+        from muscle_mss.app.warm_up import ensure_compiled, stderr_notice
         ensure_compiled(stderr_notice)
     if args.study or args.time is not None:
         if not args.study:
@@ -133,7 +133,7 @@ def _run(args, controller, rank, size, settings, writing) -> int:
     """Every rank's time points, then rank 0's summary and index; 1 when a rank failed."""
     from muscle_mss.core.errors import MuscleMSSError
     from muscle_mss.filters import array_names as A
-    from muscle_mss.filters import motion_run, output_folder, run_output
+    from muscle_mss.app import motion_run, output_folder, run_output
     failed = 0
     partial = f".summary.rank{rank}.csv"
     try:

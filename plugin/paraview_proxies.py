@@ -10,7 +10,7 @@ and the "Muscle MSS" menu category, then registers it with ``smproxy.filter``. T
 
 The plugin, not the filters, is ParaView's entry point: each subclass's ``RequestData`` first
 compiles the numeric kernels when this Python has not yet, saying so among the output messages
-(:func:`~muscle_mss.filters.warm_up.ensure_compiled`).
+(:func:`~muscle_mss.app.warm_up.ensure_compiled`).
 
 Only ParaView imports this module (through ``paraview_plugins/muscle_mss_plugin.py``).
 """
@@ -20,7 +20,7 @@ from xml.sax.saxutils import escape, quoteattr
 from paraview.util.vtkAlgorithm import smhint, smproperty, smproxy
 
 from muscle_mss.filters import EXPORTS, FILTER_NAMES
-from muscle_mss.filters.warm_up import ensure_compiled, output_window_notice
+from muscle_mss.app.warm_up import ensure_compiled, output_window_notice
 
 MENU_CATEGORY = "Muscle MSS"
 

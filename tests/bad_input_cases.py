@@ -2,7 +2,7 @@
 
 Each :class:`Case` mutates the small demo scene (in memory before it is written, or its files
 after) and/or sets options, then runs it both ways a user would: ``muscle-mss run SCENE OUT
---time 0.5`` (:func:`run_cli`) and the bare filter chain of :mod:`muscle_mss.filters.motion_run`
+--time 0.5`` (:func:`run_cli`) and the bare filter chain of :mod:`muscle_mss.app.motion_run`
 (:func:`run_chain`, what pvpython and ParaView run). ``tests/test_bad_input.py`` asserts the
 messages; run this file to regenerate the table of ``docs/bad-input.md``::
 
@@ -633,7 +633,7 @@ def run_cli(case: Case, folder, out) -> tuple:
     """``muscle-mss run folder out --time 0.5 [options]`` in this process: ``(exit code,
     the message of its "error:" line, or for a case that ``warns`` its warning, or None, its
     stderr with VTK's messages)``."""
-    from muscle_mss.filters.cli import main
+    from muscle_mss.app.cli import main
     from muscle_mss.filters.scene_io import vtk_messages
     stderr = io.StringIO()
     with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()), \
@@ -650,7 +650,7 @@ def run_chain(case: Case, folder):
     """The filter chain on ``folder`` with ``case.settings`` at time point 10: the message of
     the :class:`MuscleMSSError` it raises (with the failing filter's label), else for a case
     that ``warns`` its warning, else None."""
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     from muscle_mss.filters.scene_io import vtk_messages
     try:
         with vtk_messages() as window:

@@ -39,5 +39,5 @@ def compiled_kernels():
 
     from muscle_mss.core import kernel_cache
     if not kernel_cache.is_warm():
-        subprocess.run([sys.executable, "-m", "muscle_mss.filters.warm_up", "--quiet"],
+        subprocess.run([sys.executable, "-m", "muscle_mss.app.warm_up", "--quiet"],
                        check=True)

@@ -41,10 +41,10 @@ def warm_paraview_python() -> None:
     no timeout, so that no ParaView command's timeout is spent compiling."""
     if _WARM:
         return
-    proc = subprocess.run(["pvpython", "-m", "muscle_mss.filters.warm_up", "--quiet"], cwd=REPO,
+    proc = subprocess.run(["pvpython", "-m", "muscle_mss.app.warm_up", "--quiet"], cwd=REPO,
                           env=paraview_env(), capture_output=True, text=True)
     if proc.returncode != 0:
-        raise AssertionError(f"pvpython -m muscle_mss.filters.warm_up exited {proc.returncode}\n"
+        raise AssertionError(f"pvpython -m muscle_mss.app.warm_up exited {proc.returncode}\n"
                              f"{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
     _WARM.append(True)
 

@@ -13,7 +13,7 @@ from muscle_mss.core.pose import pose_at
 from muscle_mss.filters import (FibreResampler, RigidPoseTransform, SpringBuilder)
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
-from muscle_mss.filters.cli import main
+from muscle_mss.app.cli import main
 from muscle_mss.filters.scene_io import check_scene, load_scene, scene_readers, write_scene
 
 

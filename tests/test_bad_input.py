@@ -118,7 +118,7 @@ def test_any_other_exception_in_a_filter_reaches_the_caller_as_ours(
 def test_ctrl_c_in_a_filter_stops_the_run_as_an_interruption(scenes, tmp_path, monkeypatch):
     _probe_failing_with(monkeypatch, KeyboardInterrupt())
     folder, _ = scenes(B.CASES[0])
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     pipeline = motion_run.build_pipeline(str(folder))
     with pytest.raises(Interrupted, match="Ctrl-C while MVC Surface Deformer ran"):
         motion_run.solve_time_point(pipeline, B.TIME_INDEX)
@@ -246,7 +246,7 @@ def test_sizes_too_large_for_memory_are_refused_before_allocating(monkeypatch):
 def test_a_resolution_whose_surface_weights_exceed_memory_is_refused_before_the_solve(
         scenes, monkeypatch):
     from muscle_mss.core import errors
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     folder, _ = scenes(B.CASES[0])
     monkeypatch.setattr(errors, "memory_limit", lambda: 100_000)
     pipeline = motion_run.build_pipeline(str(folder), {"ParticlesPerFibre": 40})

@@ -9,8 +9,8 @@ import sys
 
 import pytest
 
-from muscle_mss.filters import output_folder, run_output
-from muscle_mss.filters.cli import main
+from muscle_mss.app import output_folder, run_output
+from muscle_mss.app.cli import main
 
 pytest.importorskip("pyvista")  # the CLI's pictures; ParaView's Python has no pyvista
 
@@ -114,7 +114,7 @@ def test_batch_refuses_another_run_unless_overwrite(small_scene_dir, tmp_path, c
 
 def test_pictures_render_off_screen_without_x_warnings(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run([sys.executable, "-m", "muscle_mss.filters.cli", "demo-scene",
+    proc = subprocess.run([sys.executable, "-m", "muscle_mss.app.cli", "demo-scene",
                            str(tmp_path / "scene"), "--size", "small"],
                           env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
@@ -138,7 +138,7 @@ def test_batch_with_overwrite_replaces_the_earlier_run(small_scene, small_scene_
 
 
 def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
-    from muscle_mss.filters.cli import summary_table
+    from muscle_mss.app.cli import summary_table
     row = {"muscle": "vastus", "volume_error_pct": "1.5", "max_fibre_strain": "0.1",
            "sphere_overlap_mm": "0.01", "new_in_bone_depth_mm": "4.7",
            "new_in_bone_depth_after_push_mm": "0.0", "in_other_muscle_depth_mm": "2.5",
@@ -170,8 +170,8 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
 
 
 def test_the_table_says_how_the_fibres_follow_their_muscles_length():
-    from muscle_mss.filters.cli import summary_table
-    from muscle_mss.filters.study import follow_slope
+    from muscle_mss.app.cli import summary_table
+    from muscle_mss.app.study import follow_slope
     base = {"muscle": "biceps", "volume_error_pct": "1.0", "max_fibre_strain": "0.0",
             "sphere_overlap_mm": "0", "new_in_bone_depth_mm": "", "cage_drift_vertices": "0",
             "new_in_bone_depth_after_push_mm": "", "cage_drift_mm": "0.5", "time": "0",

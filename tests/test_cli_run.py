@@ -4,8 +4,8 @@ import csv
 import numpy as np
 import pytest
 
-from muscle_mss.filters.cli import main
-from muscle_mss.filters.run_output import SUMMARY_COLUMNS
+from muscle_mss.app.cli import main
+from muscle_mss.app.run_output import SUMMARY_COLUMNS
 
 pytest.importorskip("pyvista")  # the CLI's pictures; ParaView's Python has no pyvista
 
@@ -102,9 +102,9 @@ def cut_off_pixels(path, panels=3, title_rows=45, frame=3):
 @pytest.mark.parametrize("region", ["thigh", "arm"])
 def test_poses_picture_frames_a_pose_that_swings_out_of_the_rest_box(region, tmp_path):
     from muscle_mss.core.motion import farthest_pose_index
-    from muscle_mss.filters import motion_run
-    from muscle_mss.filters.cli import demo_region_scene
-    from muscle_mss.filters.pictures import poses_picture
+    from muscle_mss.app import motion_run
+    from muscle_mss.app.cli import demo_region_scene
+    from muscle_mss.app.pictures import poses_picture
     from muscle_mss.filters.scene_io import write_scene
 
     scene = demo_region_scene(region, "small")

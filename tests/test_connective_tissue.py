@@ -352,7 +352,7 @@ def test_a_tissue_along_fraction_outside_0_to_1_is_refused(bent, method):
 
 def test_the_command_line_sets_the_along_fraction_only_when_given():
     import argparse
-    from muscle_mss.filters.run_options import add_run_options, settings_from
+    from muscle_mss.app.run_options import add_run_options, settings_from
     parser = argparse.ArgumentParser()
     add_run_options(parser)
     assert "TissueAlongFibres" not in settings_from(parser.parse_args([]))

@@ -186,7 +186,7 @@ def test_elbow_flexes_from_10_to_130_and_back_about_its_axis(full):
 # ---- command line --------------------------------------------------------------------------
 
 def test_demo_scene_command_writes_the_arm(tmp_path, capsys):
-    from muscle_mss.filters.cli import main
+    from muscle_mss.app.cli import main
     from muscle_mss.filters.scene_io import load_scene
     pytest.importorskip("pyvista")
     assert main(["demo-scene", str(tmp_path), "--region", "arm", "--size", "small"]) == 0

@@ -258,7 +258,7 @@ def test_marching_tetrahedra_meshes_a_sphere_and_a_torus():
 
 @pytest.mark.skipif(importlib.util.find_spec("pyvista") is None, reason="needs pyvista")
 def test_preview_is_written_and_not_blank(small, tmp_path):
-    from muscle_mss.filters.pictures import pose_time, scene_preview
+    from muscle_mss.app.pictures import pose_time, scene_preview
     path = scene_preview(small, tmp_path / "preview.png", window_size=(640, 400))
     import pyvista
     image = pyvista.read(path)

@@ -16,7 +16,7 @@ from muscle_mss.core.mvc import WELL_CONDITIONED, bounded_coordinates, mvc_defor
 from muscle_mss.core.scene import Surface
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
-from muscle_mss.filters.motion_run import build_pipeline, update_at
+from muscle_mss.app.motion_run import build_pipeline, update_at
 from muscle_mss.filters.scene_io import write_scene
 
 MUSCLE = "rectus_femoris"

@@ -12,7 +12,7 @@ from muscle_mss.core.demo import arm as demo_arm
 from muscle_mss.core.pose import pose_at
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
-from muscle_mss.filters.motion_run import build_pipeline, solve_time_point
+from muscle_mss.app.motion_run import build_pipeline, solve_time_point
 from arm_scenes import written_arm_at_full_flexion
 
 VOLUME_LIMIT_PCT = 6.0          # the paper's accepted volume error (§4)

@@ -103,7 +103,7 @@ def folders(tmp_path_factory):
 def _solve(folder, settings):
     """The solved particles' and the deformed surfaces' points per muscle at the bad-input
     time point, and the VTK warnings of the run."""
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     from muscle_mss.filters import vtk_arrays as V
     from muscle_mss.filters.scene_io import vtk_messages
     with vtk_messages() as window:
@@ -148,7 +148,7 @@ def test_the_resampler_without_bones_orients_by_the_majority(folders):
 
 
 def test_validate_prints_what_a_run_would_reverse(folders):
-    from muscle_mss.filters.cli import main
+    from muscle_mss.app.cli import main
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert main(["validate", str(folders[1])]) == 0
@@ -159,7 +159,7 @@ def test_validate_prints_what_a_run_would_reverse(folders):
 
 @pytest.mark.parametrize("layout", ["lattice-6", "lattice-26", "Delaunay", "k-NN"])
 def test_each_layout_takes_its_coarsest_resolution_and_refuses_one_less(folders, layout):
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     from muscle_mss.filters.spring_builder import MIN_PARTICLES_PER_FIBRE
     least = MIN_PARTICLES_PER_FIBRE[layout]
     pipeline = motion_run.build_pipeline(str(folders[0]), {"ParticlesPerFibre": least,

@@ -160,7 +160,7 @@ def test_the_elbow_demos_shortening_muscles_shorten_at_130_degrees_with_the_prop
     brachialis and brachioradialis, whose ends come 20-30 % closer at 130 degrees, shorten
     their fibres instead of keeping their length; the lengthening triceps are unchanged."""
     from muscle_mss.filters import array_names as A
-    from muscle_mss.filters.motion_run import build_pipeline, solve_time_point
+    from muscle_mss.app.motion_run import build_pipeline, solve_time_point
     from arm_scenes import written_arm_at_full_flexion
     scene, index = written_arm_at_full_flexion("small", tmp_path)
     rows = {}
@@ -184,7 +184,7 @@ def test_the_elbow_demos_shortening_muscles_shorten_at_130_degrees_with_the_prop
 
 def test_the_command_line_sets_the_property_only_when_asked():
     import argparse
-    from muscle_mss.filters.run_options import add_run_options, settings_from
+    from muscle_mss.app.run_options import add_run_options, settings_from
     parser = argparse.ArgumentParser()
     add_run_options(parser)
     assert "FibreShortening" not in settings_from(parser.parse_args([]))

@@ -6,7 +6,7 @@ import pytest
 
 import bad_input_cases as B
 from muscle_mss.core.errors import Interrupted, MuscleMSSError
-from muscle_mss.filters import motion_run
+from muscle_mss.app import motion_run
 from muscle_mss.filters import vtk_arrays as V
 
 CLEAN = B.Case("clean", "", "")
@@ -126,7 +126,7 @@ def test_ctrl_c_in_a_solve_is_an_interruption_naming_the_filter(raised, small_sc
 
 def test_ctrl_c_stops_the_batch_naming_the_filter_and_releases_the_folder(
         small_scene_dir, tmp_path, monkeypatch, capsys):
-    from muscle_mss.filters.output_folder import LOCK_FILE
+    from muscle_mss.app.output_folder import LOCK_FILE
     from muscle_mss.plugin.batch import main as batch
     _raise_in_solver(monkeypatch, KeyboardInterrupt)
     assert batch([str(small_scene_dir), str(tmp_path), "--iterations", "3"]) == 130
@@ -149,7 +149,7 @@ def test_ctrl_c_before_a_filters_own_handling_names_the_filter(small_scene_dir, 
 
 def test_ctrl_c_outside_the_filters_names_the_command(small_scene_dir, tmp_path, monkeypatch):
     """Such a Ctrl-C said "interrupted: ;", before."""
-    from muscle_mss.filters import run_output
+    from muscle_mss.app import run_output
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt

@@ -13,8 +13,8 @@ import pytest
 import bad_input_cases as B
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.filters import output_folder, run_output
-from muscle_mss.filters.cli import main
+from muscle_mss.app import output_folder, run_output
+from muscle_mss.app.cli import main
 
 MANIFEST = output_folder.MANIFEST_FILE
 
@@ -88,7 +88,7 @@ def _error_line(err: str) -> str:
 @pytest.fixture
 def unsolved(monkeypatch):
     """Solving fails the test: what is refused must be refused before any solve."""
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
 
     def solve(*args, **kwargs):
         raise AssertionError("solved before the output folder's check")
@@ -255,7 +255,7 @@ def test_a_lock_left_by_a_run_that_died_is_taken_over_with_a_note(small_scene_di
 
 def test_the_lock_is_released_after_an_error_and_after_ctrl_c(small_scene_dir, tmp_path,
                                                              capsys, monkeypatch):
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
 
     def fails(*args, **kwargs):
         raise MuscleMSSError("a solve that fails")
@@ -307,7 +307,7 @@ def test_a_folder_that_cannot_be_locked_is_refused(tmp_path, monkeypatch):
 def demo_unsolved(monkeypatch):
     """``muscle-mss demo`` writes its scene and record, and neither prepares nor solves (nor
     renders the preview: a file stands for it, and ParaView's Python has no pyvista)."""
-    from muscle_mss.filters import cli, pictures
+    from muscle_mss.app import cli, pictures
     monkeypatch.setattr(cli, "prepared_pipeline", lambda *args, **kwargs: (None, 0))
     monkeypatch.setattr(pictures, "scene_preview",
                         lambda scene, path: open(path, "w").write("a preview"))
@@ -320,7 +320,7 @@ def _demo(out, *options):
 
 def test_demo_replaces_its_own_scene_and_refuses_an_edited_one(tmp_path, capsys,
                                                                demo_unsolved):
-    from muscle_mss.filters.demo_folder import DEMO_SCENE_RECORD
+    from muscle_mss.app.demo_folder import DEMO_SCENE_RECORD
     scene = tmp_path / "scene"
     assert _demo(tmp_path) == 0
     written = B.folder_digest(scene)
@@ -347,7 +347,7 @@ def test_demo_replaces_its_own_scene_and_refuses_an_edited_one(tmp_path, capsys,
 def test_demo_refuses_a_scene_it_did_not_write(small_scene_dir, tmp_path, capsys,
                                                demo_unsolved):
     """A user's own scene in OUT/scene (no record of the demo's files), and a file there."""
-    from muscle_mss.filters.demo_folder import DEMO_SCENE_RECORD
+    from muscle_mss.app.demo_folder import DEMO_SCENE_RECORD
     shutil.copytree(small_scene_dir, tmp_path / "scene")
     digest = B.folder_digest(tmp_path)
     assert _demo(tmp_path) == 2

@@ -1,5 +1,5 @@
 """pyproject.toml installs the package as a plain src layout: src/muscle_mss/ holds links to the
-root's core/, filters/ and plugin/ (setuptools then needs no import hook for an editable
+root's core/, filters/, app/ and plugin/ (setuptools then needs no import hook for an editable
 install, and prints no warning about folders that could shadow the package), and it names every
 folder of modules it installs (setuptools warns "Package would be ignored" for a folder of .py
 files that is not listed, and does not install it)."""
@@ -7,7 +7,7 @@ import os
 import tomllib
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PACKAGE_FOLDERS = ("core", "filters", "plugin")
+PACKAGE_FOLDERS = ("core", "filters", "app", "plugin")
 
 
 def _setuptools() -> dict:

@@ -31,7 +31,7 @@ ITERATIONS = "60"  # enough to exercise the solver; the numbers only need to agr
 
 @pytest.fixture(scope="module")
 def venv_chain(small_scene_dir):
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     return motion_run.build_pipeline(small_scene_dir, {"Iterations": int(ITERATIONS)})
 
 
@@ -58,7 +58,7 @@ def test_plugin_builder_gives_the_venv_chain_numbers_and_time_moves_the_pose(
         small_scene, small_scene_dir, venv_chain, tmp_path):
     import numpy as np
     from muscle_mss.filters import vtk_arrays as V
-    from muscle_mss.filters.motion_run import update_at
+    from muscle_mss.app.motion_run import update_at
 
     times = small_scene.motion.times
     t0, t1 = float(times[0]), float(times[len(times) * 3 // 4])
@@ -118,7 +118,7 @@ def test_saved_state_hides_fibres_charts_every_muscle_and_follows_the_colour_ran
     import numpy as np
     from muscle_mss.filters import array_names as A
     from muscle_mss.filters import vtk_arrays as V
-    from muscle_mss.filters.motion_run import update_at
+    from muscle_mss.app.motion_run import update_at
     from muscle_mss.plugin.pipeline import fibre_strain_series
     from paraview_support import run
     work = tmp_path / "review"
@@ -197,8 +197,8 @@ def test_pvpython_batch_writes_the_study_the_cli_writes(small_scene, small_scene
     import csv
     import subprocess
     from paraview_support import REPO, paraview_env, run
-    from muscle_mss.filters.cli import main
-    from muscle_mss.filters.study_report import STUDY_FILES
+    from muscle_mss.app.cli import main
+    from muscle_mss.app.study_report import STUDY_FILES
     t = float(small_scene.motion.times[10])
     run(["pvpython", "-m", "muscle_mss.plugin.batch", "--study", small_scene_dir,
          tmp_path / "pv", "--time", str(t)])
@@ -234,7 +234,7 @@ def _paraview_kernels_unmarked(folder):
     from paraview_support import REPO, run
     from muscle_mss.core import kernel_cache
 
-    run(["pvpython", "-m", "muscle_mss.filters.warm_up"])  # ParaView's Python's own cache
+    run(["pvpython", "-m", "muscle_mss.app.warm_up"])  # ParaView's Python's own cache
     digest = kernel_cache.sources_digest(os.path.join(REPO, "core"))
     (own,) = glob.glob(os.path.join(kernel_cache.base_cache_dir(),
                                     f"numba-{digest}-*numba0.56*"))

@@ -7,7 +7,7 @@ import pytest
 
 from muscle_mss.core.settings import SolverSettings
 from muscle_mss.filters.collision_solver import MSSCollisionSolver
-from muscle_mss.filters.run_options import (add_run_options, run_properties, settings_from,
+from muscle_mss.app.run_options import (add_run_options, run_properties, settings_from,
                                             study_ignored)
 
 FIELD_ROWS = [p for p in MSSCollisionSolver.PROPERTIES if p.field]

@@ -112,7 +112,7 @@ def folders(tmp_path_factory):
 
 
 def _solve(folder, settings=None):
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     from muscle_mss.filters.scene_io import vtk_messages
     with vtk_messages() as window:
         pipeline = motion_run.build_pipeline(str(folder), settings)
@@ -122,7 +122,7 @@ def _solve(folder, settings=None):
 
 @pytest.mark.parametrize("layout", ["lattice-26", "k-NN"])
 def test_fibres_as_segments_give_the_particles_and_springs_of_the_whole_fibres(layout, folders):
-    from muscle_mss.filters import motion_run
+    from muscle_mss.app import motion_run
     from muscle_mss.filters import vtk_arrays as V
     models = []
     for name in ("valid", "fibres-as-segments"):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from muscle_mss.core.scene import FibreSet
-from muscle_mss.filters.cli import main
+from muscle_mss.app.cli import main
 from muscle_mss.filters.scene_io import check_scene, load_scene, read_scene, write_scene
 
 

@@ -17,7 +17,7 @@ def _rows(path):
 
 @pytest.fixture(scope="module")
 def study_out(small_scene_dir, tmp_path_factory):
-    from muscle_mss.filters.cli import main
+    from muscle_mss.app.cli import main
     out = tmp_path_factory.mktemp("study")
     assert main(["study", str(small_scene_dir), str(out), "--overwrite"]) == 0
     return out
@@ -25,7 +25,7 @@ def study_out(small_scene_dir, tmp_path_factory):
 
 def test_the_study_writes_its_report_figures_and_tables(study_out, small_scene):
     from muscle_mss.filters.spring_builder import LAYOUTS
-    from muscle_mss.filters.study_report import FIGURES, STUDY_FILES
+    from muscle_mss.app.study_report import FIGURES, STUDY_FILES
     for name in STUDY_FILES:
         assert (study_out / name).stat().st_size > 0, name
     text = (study_out / "report.html").read_text()
@@ -58,7 +58,7 @@ def test_the_studys_tables_agree_with_a_runs_summary(study_out, small_scene_dir,
     """Where the study's CSVs and a run's summary.csv overlap (the default layout, the whole
     motion) they hold the same numbers. The run as ``muscle-mss run`` and the batch compute and
     write it (the CLI's pictures need pyvista, which Debian's Python lacks)."""
-    from muscle_mss.filters import motion_run, run_output
+    from muscle_mss.app import motion_run, run_output
     out = tmp_path / "run"
     with run_output.output_folder(str(out)):
         _, rows = motion_run.run_motion(small_scene_dir, str(out), series_names=("fibres",))
@@ -83,7 +83,7 @@ def test_fibres_and_paths_keep_their_rest_length_when_the_bones_do_not_move(
     """Every bone at rest at every time point: the origin-insertion path is the rest one, the
     fibres' strain stays 0 (within rounding) and their tortuosity is the rest one."""
     from muscle_mss.filters.scene_io import write_scene
-    from muscle_mss.filters.study import motion_series
+    from muscle_mss.app.study import motion_series
     motion = small_scene.motion
     still = np.zeros((3, len(motion.bones), 3, 4))
     still[:, :, :, :3] = np.eye(3)
@@ -104,7 +104,7 @@ def test_fibres_and_paths_keep_their_rest_length_when_the_bones_do_not_move(
 def test_a_zigzag_fibre_is_flagged_and_a_straight_one_is_not():
     from muscle_mss.core.cage import polyline_chords, polyline_lengths
     from muscle_mss.filters import vtk_arrays as V
-    from muscle_mss.filters.study import BEND_LIMIT, fibre_statistics
+    from muscle_mss.app.study import BEND_LIMIT, fibre_statistics
     t = np.linspace(0.0, 100.0, 11)
     straight = np.column_stack([t, np.zeros(11), np.zeros(11)])
     zigzag = np.column_stack([t, 8.0 * (np.arange(11) % 2), np.zeros(11) + 30.0])
@@ -127,7 +127,7 @@ def test_a_zigzag_fibre_is_flagged_and_a_straight_one_is_not():
 
 
 def test_the_later_phase_slope_is_the_decay_rate():
-    from muscle_mss.filters.study import later_slope
+    from muscle_mss.app.study import later_slope
     k = np.arange(1, 501)
     displacement = np.column_stack([10.0 ** (-0.002 * k), 10.0 ** (-0.0005 * k), 0.0 * k])
     slopes = later_slope(displacement)
@@ -136,7 +136,7 @@ def test_the_later_phase_slope_is_the_decay_rate():
 
 
 def test_study_options_are_checked(small_scene_dir, tmp_path, capsys):
-    from muscle_mss.filters.cli import main
+    from muscle_mss.app.cli import main
     from muscle_mss.plugin.batch import main as batch
     assert main(["study", str(small_scene_dir), str(tmp_path / "a"), "--time", "9"]) == 2
     assert "outside the motion's time range" in capsys.readouterr().err
@@ -150,8 +150,8 @@ def test_study_options_are_checked(small_scene_dir, tmp_path, capsys):
 def test_the_report_names_the_pose_asked_with_time(small_scene_dir, tmp_path, monkeypatch):
     """``--time 0.5``: the report said t = 0.5 s was "where the bones are rotated farthest from
     rest"; the small demo's most flexed pose is t = 0.75 s."""
-    from muscle_mss.filters import study, study_report
-    from muscle_mss.filters.cli import main
+    from muscle_mss.app import study, study_report
+    from muscle_mss.app.cli import main
     asked = {}
 
     def run_study(scene_folder, resolution, index=None, progress=None, asked_time=None):
@@ -177,6 +177,6 @@ def test_the_report_names_the_pose_asked_with_time(small_scene_dir, tmp_path, mo
 
 
 def _no_motion():
-    from muscle_mss.filters.study import MotionSeries
+    from muscle_mss.app.study import MotionSeries
     fields = {f.name: None for f in dataclasses.fields(MotionSeries)}
     return MotionSeries(**fields)

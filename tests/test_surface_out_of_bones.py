@@ -140,7 +140,7 @@ def test_without_bones_nothing_is_reported_and_one_bone_input_alone_is_refused()
 def test_small_demo_at_its_most_flexed_pose_has_no_surface_vertex_newly_in_a_bone(
         small_scene_dir):
     from muscle_mss.core.bones.triangle_distance import exact_signed_distance
-    from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
+    from muscle_mss.app.motion_run import build_pipeline, solve_time_point, update_at
     p = build_pipeline(small_scene_dir)
     index = int(np.argmin(np.abs(np.asarray(p.times) - 0.75)))
     result = solve_time_point(p, index)

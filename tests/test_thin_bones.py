@@ -14,7 +14,7 @@ from muscle_mss.core.demo import arm as demo_arm
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import INSIDE_TOLERANCE
-from muscle_mss.filters.motion_run import build_pipeline, solve_time_point, update_at
+from muscle_mss.app.motion_run import build_pipeline, solve_time_point, update_at
 from muscle_mss.core.scene import Surface
 from arm_scenes import written_arm_at_full_flexion
 from surface_probes import inside, signed_distance

@@ -9,8 +9,9 @@ from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.contacts.penetration import max_penetration_pairs, max_penetration_per_object
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.rigid_fit import rigid_fit
-from muscle_mss.filters import bone_sets, check_cache, motion_run, run_output
-from muscle_mss.filters.cli import main, timings_note
+from muscle_mss.filters import bone_sets, check_cache
+from muscle_mss.app import motion_run, run_output
+from muscle_mss.app.cli import main, timings_note
 
 SPACING = 3.0
 

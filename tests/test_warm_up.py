@@ -1,4 +1,4 @@
-"""Compiling the kernels once per Python, and saying so (filters.warm_up, core.kernel_cache)."""
+"""Compiling the kernels once per Python, and saying so (app.warm_up, core.kernel_cache)."""
 import os
 import shutil
 import subprocess
@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from muscle_mss.core import kernel_cache
-from muscle_mss.filters import warm_up
+from muscle_mss.app import warm_up
 
 NOTICE = "compiling the numeric kernels once for this Python"
 
@@ -137,7 +137,7 @@ def warm_cache_copy(tmp_path_factory):
 
 def _cli(*args, cache):
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    return subprocess.run([sys.executable, "-m", "muscle_mss.filters.cli", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "muscle_mss.app.cli", *map(str, args)],
                           env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -226,7 +226,7 @@ def test_the_second_share_runs_the_surfaces_without_a_solve(monkeypatch):
     """The second process's own command (compiled kernels: seconds) exits 0; the surfaces
     alone run the MVC Surface Deformer and the probe without the solver."""
     from muscle_mss.filters.collision_solver import MSSCollisionSolver
-    done = subprocess.run([sys.executable, "-m", "muscle_mss.filters.warm_up",
+    done = subprocess.run([sys.executable, "-m", "muscle_mss.app.warm_up",
                            "--second-share"], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     solved, surfaces = [], []
@@ -283,7 +283,7 @@ def test_the_default_settings_kernels_compile_in_a_second_process_while_the_body
     seen = []
     with warm_up.compiling_beside(print, DEFAULTS) as compiling:
         seen.append((compiling, helper.args, numba.get_num_threads()))
-    assert seen == [(True, [sys.executable, "-m", "muscle_mss.filters.warm_up", "--defaults",
+    assert seen == [(True, [sys.executable, "-m", "muscle_mss.app.warm_up", "--defaults",
                             "--quiet"], 1)]
     assert numba.get_num_threads() == threads and in_place == [] and not helper.terminated
     assert warm_up._settled[DEFAULTS]

@@ -4,8 +4,8 @@
    removed; alias it to ``getfullargspec`` (the loader only reads ``.args``). A no-op on
    ParaView >= 5.12 and older Pythons.
 2. When ``muscle_mss`` is not installed in ParaView's Python, make it importable from this
-   checkout: the repository maps ``muscle_mss.core`` / ``.filters`` / ``.plugin`` to its
-   top-level ``core/``, ``filters/``, ``plugin/`` folders (pyproject's package-dir).
+   checkout: the repository maps ``muscle_mss.core`` / ``.filters`` / ``.app`` / ``.plugin`` to
+   its top-level ``core/``, ``filters/``, ``app/``, ``plugin/`` folders (pyproject's package-dir).
 
 Python imports ``sitecustomize`` at start-up in pvpython, pvbatch and the GUI, so both are in
 place before ParaView or a batch script imports anything.

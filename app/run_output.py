@@ -1,6 +1,6 @@
 """The files a run of a whole motion writes in its output folder (DESIGN §7).
 
-What :mod:`muscle_mss.filters.motion_run` computes, written the same way by ``muscle-mss demo``
+What :mod:`muscle_mss.app.motion_run` computes, written the same way by ``muscle-mss demo``
 / ``muscle-mss run`` and the pvpython/pvbatch entry point ``muscle_mss.plugin.batch``:
 
 * ``surfaces.pvd``, ``fibres.pvd``, ``particles.pvd``: time series (one ``.vtm`` per time point
@@ -29,7 +29,7 @@ from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataWriter
 
 from muscle_mss.core.errors import MuscleMSSError
 
-from . import array_names as A
+from muscle_mss.filters import array_names as A
 from . import output_folder as folder
 
 SUMMARY_COLUMNS = (A.TIME, A.MUSCLE, A.REST_VOLUME, A.VOLUME, A.VOLUME_ERROR_PCT,
@@ -137,7 +137,7 @@ def convergence_file(index: int) -> str:
 @contextlib.contextmanager
 def output_folder(out: str, overwrite: bool = False, names=RUN_FILES,
                   folders=(SERIES_FOLDER, CONVERGENCE_FOLDER), places=(), inputs=(), check=None):
-    """Hold ``out`` for a run (its lock, :mod:`~muscle_mss.filters.output_folder`) for the
+    """Hold ``out`` for a run (its lock, :mod:`~muscle_mss.app.output_folder`) for the
     ``with`` block, after checking it before solving: created if missing, writable, no name of
     ``names`` (the run's files and ``folders``; default a motion run's, :data:`RUN_FILES`)
     taken by a file or folder the run did not write, nor any of ``places`` (the files and
@@ -163,7 +163,7 @@ def output_folder(out: str, overwrite: bool = False, names=RUN_FILES,
 
 def write_time_point(result, out: str, series_names=SERIES,
                      compressor: str = DEFAULT_COMPRESSOR) -> None:
-    """Write one time point's (a :class:`~muscle_mss.filters.motion_run.TimePointResult`) series
+    """Write one time point's (a :class:`~muscle_mss.app.motion_run.TimePointResult`) series
     files (those of ``series_names``, a subset of
     :data:`SERIES`) and convergence table under ``out``; the series as appended raw binary
     compressed with ``compressor`` (one of :data:`COMPRESSORS`). Adds the seconds taken to

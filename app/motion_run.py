@@ -3,7 +3,7 @@ points one by one and collect each one's outputs and summary rows.
 
 Shared by ``muscle-mss demo`` / ``muscle-mss run`` and the pvpython/pvbatch entry point
 ``muscle_mss.plugin.batch``, so that all three compute the same for the same scene; what is
-written, and how, is :mod:`muscle_mss.filters.run_output`.
+written, and how, is :mod:`muscle_mss.app.run_output`.
 
 Time points are solved in time order, so that with the MSS Collision Solver's ``WarmStart``
 on the quasi-static method starts each from the one before it (the filter keeps its last
@@ -23,16 +23,17 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.scene import MOTION_FILE
 
-from . import array_names as A
-from . import vtk_arrays as V
-from .collision_solver import BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, MSSCollisionSolver
-from .fibre_resampler import FibreResampler
-from .mvc_surface_deformer import MVCSurfaceDeformer
-from .rigid_pose_transform import RigidPoseTransform
+from muscle_mss.filters import array_names as A
+from muscle_mss.filters import vtk_arrays as V
+from muscle_mss.filters.collision_solver import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES,
+                                                MSSCollisionSolver)
+from muscle_mss.filters.fibre_resampler import FibreResampler
+from muscle_mss.filters.mvc_surface_deformer import MVCSurfaceDeformer
+from muscle_mss.filters.rigid_pose_transform import RigidPoseTransform
+from muscle_mss.filters.scene_io import scene_readers
+from muscle_mss.filters.spring_builder import SpringBuilder
+from muscle_mss.filters.volume_error_probe import SURFACE_COLUMNS, VolumeErrorProbe
 from .run_output import DEFAULT_COMPRESSOR, SERIES, write_time_point
-from .scene_io import scene_readers
-from .spring_builder import SpringBuilder
-from .volume_error_probe import SURFACE_COLUMNS, VolumeErrorProbe
 
 
 @dataclass
@@ -262,14 +263,14 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
     K), in time order; default all.
 
     ``series_names`` and ``compressor``: what
-    :func:`~muscle_mss.filters.run_output.write_time_point` writes, and how.
+    :func:`~muscle_mss.app.run_output.write_time_point` writes, and how.
 
     ``pipeline``: one :func:`build_pipeline` built for ``scene_folder`` and ``settings``
     already (its first time point prepared: :func:`prepare_time_point`), else a new one.
 
     ``on_step(result, done, total)`` is called after each time point (progress bars). Returns the
     pipeline and the summary rows in time-point order; the caller writes ``summary.csv`` and the
-    ``.pvd`` index (:mod:`~muscle_mss.filters.run_output`) once all time points exist.
+    ``.pvd`` index (:mod:`~muscle_mss.app.run_output`) once all time points exist.
     """
     pipeline = pipeline or build_pipeline(scene_folder, settings)
     indices = time_block(len(pipeline.times), *part)

@@ -3,9 +3,9 @@
 ``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss demo-scene OUT``
 writes the deterministic demo thigh scene (``--region arm``: the elbow) and its ``preview.png``;
 ``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE
-OUT`` does the same for a user's scene (see :mod:`muscle_mss.filters.run_output` for the files
+OUT`` does the same for a user's scene (see :mod:`muscle_mss.app.run_output` for the files
 written); ``muscle-mss study SCENE OUT`` writes the paper's experiments and the fibre-length
-study as ``OUT/report.html`` (:mod:`muscle_mss.filters.study`).
+study as ``OUT/report.html`` (:mod:`muscle_mss.app.study`).
 """
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.scene import Scene
 
-from . import array_names as A
-from .fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
+from muscle_mss.filters import array_names as A
+from muscle_mss.filters.fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
 from .run_options import add_run_options, settings_from, writing_from
 
 
@@ -34,7 +34,7 @@ def scene_counts(scene: Scene) -> str:
 
 
 def cmd_validate(args) -> int:
-    from .scene_io import check_scene
+    from muscle_mss.filters.scene_io import check_scene
     scene, problems = check_scene(args.scene)
     if problems:
         for p in problems:
@@ -109,7 +109,7 @@ def write_demo_scene(out: str, size: str, region: str = REGION_THIGH) -> Scene:
     """Write the demo scene folder ``out`` of ``region`` and its ``preview.png``; return the
     scene as read back and checked from the files."""
     from .pictures import scene_preview
-    from .scene_io import load_scene, write_scene
+    from muscle_mss.filters.scene_io import load_scene, write_scene
     write_scene(demo_region_scene(region, size), out)
     scene = load_scene(out)
     scene_preview(scene, os.path.join(out, "preview.png"))
@@ -291,7 +291,7 @@ def held_output_folder(out: str, overwrite: bool, study: bool = False, places=()
     reads (its files are never removed); ``check``: called with the folder held, before the
     folder's check."""
     from .run_output import output_folder
-    from .scene_io import scene_files
+    from muscle_mss.filters.scene_io import scene_files
     from .study_report import STUDY_FILES
     names = {"names": STUDY_FILES, "folders": ()} if study else {}
     inputs = scene_files(scene) if scene is not None else ()
@@ -307,7 +307,7 @@ def held_output_folder(out: str, overwrite: bool, study: bool = False, places=()
 def cmd_demo(args) -> int:
     from .demo_folder import check_demo_scene, record_demo_scene
     from .run_output import run_places
-    from .scene_io import scene_files
+    from muscle_mss.filters.scene_io import scene_files
     writing, settings = writing_from(args), settings_from(args)
     start = wallclock.perf_counter()
     scene_folder = os.path.join(args.out, "scene")
@@ -328,7 +328,7 @@ def cmd_demo(args) -> int:
 
 def cmd_run(args) -> int:
     from .run_output import run_places
-    from .scene_io import load_scene
+    from muscle_mss.filters.scene_io import load_scene
     writing, settings = writing_from(args), settings_from(args)
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
@@ -361,7 +361,7 @@ def run_time_point(args, settings, writing) -> None:
 
 def cmd_study(args) -> int:
     """``muscle-mss study``: the paper's experiments and the fibre-length study on a scene."""
-    from .scene_io import load_scene
+    from muscle_mss.filters.scene_io import load_scene
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
     compile_kernels()
@@ -372,9 +372,9 @@ def cmd_study(args) -> int:
 
 
 def study_into(scene_folder: str, out: str, resolution=None, time=None) -> str:
-    """Run :func:`~muscle_mss.filters.study.run_study` with a progress bar and write its
+    """Run :func:`~muscle_mss.app.study.run_study` with a progress bar and write its
     report into ``out`` (held by the caller); the report's path."""
-    from .scene_io import load_scene
+    from muscle_mss.filters.scene_io import load_scene
     from .study import run_study
     from .study_report import write_report
     motion = load_scene(scene_folder).motion
@@ -472,7 +472,7 @@ def main(argv=None) -> int:
         print(f"error: {label + ': ' if label else ''}{err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as err:
-        from .base import interrupted_message
+        from muscle_mss.filters.base import interrupted_message
         print(f"\n{interrupted_message(err, f'muscle-mss {args.command}')}", file=sys.stderr)
         return 130
 

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
 
-from . import array_names as A
+from muscle_mss.filters import array_names as A
 
 MUSCLE_COLOURS = (
     "#d62728", "#ff7f0e", "#bcbd22", "#2ca02c", "#17becf", "#1f77b4", "#9467bd",
@@ -171,10 +171,10 @@ def convergence_picture(convergence_csv, path, title="") -> str:
 
 def poses_picture(pipeline, index, path, window_size=(1800, 800)) -> str:
     """Write a PNG of three panels at time point ``index`` of a
-    :class:`~muscle_mss.filters.motion_run.Pipeline`: the rest pose, the rigid-only pose (the
+    :class:`~muscle_mss.app.motion_run.Pipeline`: the rest pose, the rigid-only pose (the
     Rigid Pose Transform's surfaces) and the solved pose (the MVC Surface Deformer's surfaces),
     as the paper's figure 1. Returns ``path``."""
-    from . import vtk_arrays as V
+    from muscle_mss.filters import vtk_arrays as V
     from .motion_run import update_at
 
     t = pipeline.times[index]

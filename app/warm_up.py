@@ -15,7 +15,7 @@ Python can start itself again (not in ParaView, pvpython or pvbatch), a second p
 the surfaces' kernels and the quasi-static method's meanwhile (:func:`compile_ahead`).
 ``./setup.sh`` runs it for the venv, then for Debian's Python::
 
-    python -m muscle_mss.filters.warm_up [--quiet] [--defaults | --after-defaults]
+    python -m muscle_mss.app.warm_up [--quiet] [--defaults | --after-defaults]
 
 ``--defaults`` compiles only the kernels of a run with the default settings (what the demo
 needs; the CLI asks for no more when a run sets nothing else, :func:`scope_for`);
@@ -40,8 +40,8 @@ from muscle_mss.core.settings import (METHOD_QUASI_STATIC, METHOD_RELAXATION, ME
                                       SPRINGS_HOOKE, STRUCTURE_BVH, STRUCTURES,
                                       TERMINATION_THRESHOLD)
 
+from muscle_mss.filters.collision_solver import BONE_CONTACTS
 from . import motion_run
-from .collision_solver import BONE_CONTACTS
 
 DEFAULT_VARIANTS = ({"Iterations": 3}, {"Iterations": 30})
 """The default settings (the method :mod:`muscle_mss.core.settings` makes the default): the
@@ -81,7 +81,7 @@ def warm_up(variants=VARIANTS, surfaces_alone=False) -> float:
     no solve (the surface kernels, for a second process to compile while the first compiles
     the solver's: :func:`compile_ahead`)."""
     from muscle_mss.core.demo.scene import demo_scene
-    from .scene_io import write_scene
+    from muscle_mss.filters.scene_io import write_scene
 
     start = time.perf_counter()
     scene = demo_scene("small")
@@ -263,7 +263,7 @@ def wait_for_defaults(limit: float = AFTER_DEFAULTS_WAIT, poll: float = 2.0) -> 
 
 
 def main(argv=None) -> int:
-    """``python -m muscle_mss.filters.warm_up [--quiet] [--defaults | --after-defaults]``:
+    """``python -m muscle_mss.app.warm_up [--quiet] [--defaults | --after-defaults]``:
     compile (or find compiled) every kernel, or with ``--defaults`` those a run with the
     default settings calls (the demo's, :func:`compiling_beside`); ``--after-defaults``: every
     kernel once the default settings' are compiled (``./demo.sh``'s background compile:

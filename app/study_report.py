@@ -1,4 +1,4 @@
-"""Write a :class:`~muscle_mss.filters.study.Study` as ``OUT/report.html`` with its figures as
+"""Write a :class:`~muscle_mss.app.study.Study` as ``OUT/report.html`` with its figures as
 PNG and every figure's numbers as CSV beside it (:data:`STUDY_FILES`), plus the motion's
 ``summary.csv``. The report embeds its figures, so that it opens from disk on its own (no
 network, no other file needed)."""
@@ -10,7 +10,7 @@ import os
 
 import numpy as np
 
-from . import array_names as A
+from muscle_mss.filters import array_names as A
 from . import output_folder as folder
 from .pictures import MUSCLE_COLOURS
 from .run_output import SUMMARY_COLUMNS, SUMMARY_FILE, write_csv
@@ -399,7 +399,7 @@ def report_html(study: Study, out: str) -> str:
 
 def write_report(study: Study, out: str) -> str:
     """Write the figures, tables and ``report.html`` into ``out`` (held by the caller,
-    :func:`~muscle_mss.filters.run_output.output_folder`); return the report's path."""
+    :func:`~muscle_mss.app.run_output.output_folder`); return the report's path."""
     folder.claim(out, *STUDY_FILES)
     displacement_figure(study, out)
     slope_figure(study, out)

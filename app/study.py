@@ -1,6 +1,6 @@
 """The paper's experiments (Janák & Kohout 2014, section 4) and its partner study's fibre lengths,
 measured on one scene through the six filters: what ``muscle-mss study`` and
-``muscle_mss.plugin.batch --study`` compute (:mod:`~muscle_mss.filters.study_report` writes it).
+``muscle_mss.plugin.batch --study`` compute (:mod:`~muscle_mss.app.study_report` writes it).
 
 * **Spring layouts** (the paper's Fig. 5 and 6) at one pose, by default the most flexed
   (:func:`~muscle_mss.core.motion.farthest_pose_index`): for each of the Spring Builder's layouts
@@ -33,10 +33,10 @@ from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_DISPLAC
                                       DEFAULT_TISSUE_ALONG, METHOD_QUASI_STATIC,
                                       METHOD_RELAXATION)
 
-from . import array_names as A
-from . import vtk_arrays as V
+from muscle_mss.filters import array_names as A
+from muscle_mss.filters import vtk_arrays as V
+from muscle_mss.filters.spring_builder import DEFAULT_LAYOUT, LAYOUTS
 from .motion_run import build_pipeline, solve_time_point
-from .spring_builder import DEFAULT_LAYOUT, LAYOUTS
 
 BEND_LIMIT = 1.1
 """A fibre whose arc length over chord (end-to-end distance) exceeds its own at rest by more
@@ -319,7 +319,7 @@ def run_study(scene_folder, resolution: int, index: int | None = None,
     the one nearest ``asked_time`` when that was asked (the report says so).
     ``progress(label, done, total)`` after each step."""
     from muscle_mss.core.motion import farthest_pose_index
-    from .scene_io import load_scene
+    from muscle_mss.filters.scene_io import load_scene
     start = wallclock.perf_counter()
     scene = load_scene(scene_folder)
     flexed = farthest_pose_index(scene.motion)

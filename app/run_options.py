@@ -4,7 +4,7 @@ pvpython/pvbatch entry point ``muscle_mss.plugin.batch``.
 The options that set a filter property are the filters' property rows that carry an
 :class:`~muscle_mss.filters.properties.Option` (flag, help, values), in pipeline order (DESIGN
 §2: one definition): a new one is one row; the series and compressors come from
-:mod:`muscle_mss.filters.run_output`.
+:mod:`muscle_mss.app.run_output`.
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import importlib
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import METHOD_QUASI_STATIC, METHOD_RELAXATION
 
-from . import EXPORTS, FILTER_NAMES
+from muscle_mss.filters import EXPORTS, FILTER_NAMES
 from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
 
 OPTIONS_AFTER = ("--write", "--compressor")
