@@ -5,9 +5,8 @@ them (:mod:`muscle_mss.core.kernel_cache`) in a folder per Python, Numba and Num
 happens once per Python and version of the sources. :func:`ensure_compiled` is called by the
 entry points, never by the filters themselves (the warm-up runs them): the CLI and the batch
 before they solve (the CLI, for a run with the default settings, while it prepares the run:
-:func:`compiling_beside`), the ParaView proxies (``muscle_mss.plugin.paraview_proxies``) before
-a filter executes, and ``muscle_mss.filters`` when a script takes a filter class from it. When
-the cache is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`, compiles
+:func:`compiling_beside`) and the ParaView proxies (``muscle_mss.plugin.paraview_proxies``)
+before a filter executes; importing a filter starts nothing. When the cache is cold it reports :func:`~muscle_mss.core.kernel_cache.compile_notice`, compiles
 every kernel by running tiny solves through the filter chain (the default settings first, then
 each other method, collision structure and blending, so that a later choice compiles nothing
 either) and records the cache as warm. Numba compiles on one core: for every kernel, where the

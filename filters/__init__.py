@@ -3,11 +3,11 @@
 ``from muscle_mss.filters import FibreResampler, SpringBuilder, RigidPoseTransform,
 MSSCollisionSolver, MVCSurfaceDeformer, VolumeErrorProbe, read_scene``
 
-Names are imported on first use, so importing one filter does not import them all. Taking a
-filter class from here is a script's entry point: when this Python's kernels are not compiled
-yet, it says so and compiles them first (:func:`~muscle_mss.app.warm_up.ensure_compiled`);
-the filters' own modules, the CLI, the batch and the ParaView proxies import the classes from
-their modules.
+Names are imported on first use, so importing one filter does not import them all. Importing a
+filter starts nothing else: the kernels it calls compile at their first call when this Python
+has not compiled them yet. The application's entry points (the ``muscle-mss`` command, the
+batch, the ParaView proxies) compile them first and say so
+(:func:`~muscle_mss.app.warm_up.ensure_compiled`).
 """
 import importlib
 
@@ -36,8 +36,5 @@ def __getattr__(name):
         return MuscleMSSError
     if name in EXPORTS:
         module = importlib.import_module(f".{EXPORTS[name]}", __name__)
-        if name in FILTER_NAMES:
-            from muscle_mss.app.warm_up import ensure_compiled, output_window_notice
-            ensure_compiled(output_window_notice)
         return getattr(module, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
