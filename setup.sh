@@ -33,8 +33,11 @@ if [ "$need_apt" = 1 ]; then
     xvfb xauth openmpi-bin python3-venv python3-pip >/dev/null
 fi
 
-if ! .venv/bin/python -c "import importlib.metadata as m, muscle_mss.filters, pyvista, pytest
-m.version('tbb')" >/dev/null 2>&1; then
+# (an install whose muscle-mss command still names a module that moved is installed again)
+if ! .venv/bin/python -c "import importlib.metadata as m, muscle_mss.app.cli, pyvista, pytest
+m.version('tbb')
+assert [e.value for e in m.entry_points(group='console_scripts', name='muscle-mss')] \\
+    == ['muscle_mss.app.cli:main']" >/dev/null 2>&1; then
   echo "setup: creating .venv with muscle-mss and its test extra" >&2
   python3 -m venv .venv
   .venv/bin/python -m pip install -q --upgrade pip
