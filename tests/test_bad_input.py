@@ -78,7 +78,7 @@ def test_diverging_springs_end_with_our_error_not_a_signal(setting, scenes):
     whose explicit steps the masses and stiffnesses limit)."""
     folder, digest = scenes(B.CASES[0])
     name, value = setting.split("=")
-    script = ("import sys; from muscle_mss.filters import motion_run as m\n"
+    script = ("import sys; from muscle_mss.app import motion_run as m\n"
               f"p = m.build_pipeline({str(folder)!r}, {{{name!r}: {value}, "
               "'Method': 'paper relaxation'})\n"
               "m.solve_time_point(p, 10)\n")

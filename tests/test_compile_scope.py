@@ -24,7 +24,7 @@ COMPILED = """
 import json, sys
 from numba.core.dispatcher import Dispatcher
 import muscle_mss.core.contacts.octree_bvh, muscle_mss.core.quasi_static, muscle_mss.core.relaxation
-from muscle_mss.filters import warm_up
+from muscle_mss.app import warm_up
 warm_up.warm_up(warm_up.DEFAULT_VARIANTS)
 found = {}
 for name, module in sorted(sys.modules.items()):
@@ -35,7 +35,7 @@ for name, module in sorted(sys.modules.items()):
 print("RESULT " + json.dumps(found))
 from numba.core import event
 from muscle_mss.core.demo.scene import demo_scene
-from muscle_mss.filters import motion_run
+from muscle_mss.app import motion_run
 from muscle_mss.filters.scene_io import write_scene
 later = []
 class Compiles(event.Listener):
