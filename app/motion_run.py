@@ -5,7 +5,7 @@ Shared by ``muscle-mss demo`` / ``muscle-mss run`` and the pvpython/pvbatch entr
 ``muscle_mss.plugin.batch``, so that all three compute the same for the same scene; what is
 written, and how, is :mod:`muscle_mss.app.run_output`.
 
-Time points are solved in time order, so that with the MSS Collision Solver's ``WarmStart``
+Time points are solved in time order, so that with the MSS Collision Solver's warm start
 on the quasi-static method starts each from the one before it (the filter keeps its last
 solution); :func:`run_motion` gives MPI rank k of K a contiguous block of time points, so that a
 rank would warm start within its own block. By default every time point starts from its posed
@@ -25,8 +25,8 @@ from muscle_mss.core.scene import MOTION_FILE
 
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
-from muscle_mss.filters.collision_solver import (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES,
-                                                MSSCollisionSolver)
+from muscle_mss.core.settings import BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES
+from muscle_mss.filters.collision_solver import MSSCollisionSolver
 from muscle_mss.filters.fibre_resampler import FibreResampler
 from muscle_mss.filters.mvc_surface_deformer import MVCSurfaceDeformer
 from muscle_mss.filters.rigid_pose_transform import RigidPoseTransform
@@ -56,8 +56,10 @@ class Pipeline:
 def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
     """Readers for ``scene_folder`` and the six filters wired as in DESIGN §5.
 
-    ``settings`` maps property names to values, e.g. ``{"ParticlesPerFibre": 40,
-    "Layout": "k-NN"}``; each is applied to every filter that has that property.
+    ``settings`` maps property names to values (the solver's from
+    :func:`~muscle_mss.core.solver_properties.by_name`); each is applied to every filter that
+    has that property. ``cache``: the frame cache's folder
+    (:func:`~muscle_mss.app.frame_cache.chosen_folder`), or None: every frame solved.
     """
     resampler, springs, pose = FibreResampler(), SpringBuilder(), RigidPoseTransform()
     solver, deformer, probe = MSSCollisionSolver(), MVCSurfaceDeformer(), VolumeErrorProbe()

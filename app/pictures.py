@@ -154,7 +154,7 @@ def convergence_picture(convergence_csv, path, title="") -> str:
                   color=MUSCLE_COLOURS[m % len(MUSCLE_COLOURS)], lw=1.2,
                   label=column[len(prefix):].replace("_", " "))
     if A.RESIDUAL in rows[0]:
-        # the quasi-static solver's largest particle move of a step: what its Tolerance bounds
+        # the quasi-static solver's largest particle move of a step: what its tolerance bounds
         axes.plot(iterations, [max(float(r[A.RESIDUAL]), 1e-12) for r in rows], color="black",
                   lw=1.6, ls="--", label="residual (largest move)")
     axes.set_yscale("log")

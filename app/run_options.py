@@ -2,7 +2,7 @@
 pvpython/pvbatch entry point ``muscle_mss.plugin.batch``.
 
 The options that set a filter property are the filters' property rows that carry an
-:class:`~muscle_mss.filters.properties.Option` (flag, help, values), in pipeline order (DESIGN
+:class:`~muscle_mss.core.properties.Option` (flag, help, values), in pipeline order (DESIGN
 §2: one definition): a new one is one row; the series and compressors come from
 :mod:`muscle_mss.app.run_output`.
 """
@@ -12,7 +12,7 @@ import argparse
 import importlib
 
 from muscle_mss.core.errors import MuscleMSSError
-from muscle_mss.core.settings import METHOD_QUASI_STATIC, METHOD_RELAXATION
+from muscle_mss.core.settings import METHOD_PARTS, METHOD_RELAXATION
 
 from muscle_mss.filters import EXPORTS, FILTER_NAMES
 from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_write_option
@@ -20,7 +20,7 @@ from .run_output import COMPRESSORS, DEFAULT_COMPRESSOR, SERIES, Writing, parse_
 OPTIONS_AFTER = ("--write", "--compressor")
 """The run's own options, after the filters' (``--write`` a study does not take either)."""
 
-METHOD_OF_PART = {"quasi_static": METHOD_QUASI_STATIC, "relaxation": METHOD_RELAXATION}
+METHOD_OF_PART = {part: method for method, part in METHOD_PARTS.items()}
 """The method that alone reads each method's part of the solver's settings
 (:class:`~muscle_mss.core.settings.SolverSettings`)."""
 

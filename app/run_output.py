@@ -52,10 +52,10 @@ a fibre that folds instead of shortening goes well above); ``max_fibre_bend``: t
 of a fibre's arc / chord to its arc / chord at rest (1: as curved as at rest, so a fibre curved
 at rest is not counted as folded; above: it folds, or wraps a bone the motion brings against
 it); ``sphere_overlap_mm``: the deepest overlap of the muscle's collision spheres with spheres
-of other muscles (:mod:`muscle_mss.core.contacts.penetration`) and with the bones as the solver saw them
-(``BoneContact``: solids, by their distance fields, or sphere sets); ``new_in_bone_*``: deformed
-surface vertices inside a bone they were outside at rest, before and after the MVC Surface
-Deformer pushes them out; ``in_other_muscle_*``: deformed surface vertices inside another
+of other muscles (:mod:`muscle_mss.core.contacts.penetration`) and with the bones as the
+solver saw them (the solver's bone contact: solids, by their distance fields, or sphere sets);
+``new_in_bone_*``: deformed surface vertices inside a bone they were outside at rest, before and
+after the MVC Surface Deformer pushes them out; ``in_other_muscle_*``: deformed surface vertices inside another
 muscle's deformed surface and the deepest, mm (what the spheres' overlap does not show: the
 surfaces between them, and an overlap the scene had at rest); ``cage_drift_*``: how many
 deformed surface vertices drifted off their cage by more than
@@ -65,7 +65,7 @@ far from the particles around them) and the largest drift, mm;
 bone, and the deepest (by the bones' signed distance fields), all of them and those not inside a
 bone at rest (``*new_in_bone*``), as the MSS Collision Solver reports them;
 ``tissue_share_pct``: the connective tissue's force over the muscle's springs' force (%, 0
-without tissue: ``ConnectiveTissue``)."""
+without tissue: the solver's connective tissue 0)."""
 SURFACES, FIBRES, PARTICLES = "surfaces", "fibres", "particles"
 SERIES = (SURFACES, FIBRES, PARTICLES)
 """The series a run writes (``--write`` picks some), each as ``<name>.pvd``."""

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.solver_properties import by_name
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_DISPLACEMENT_THRESHOLD,
                                       DEFAULT_FIBRE_SHORTENING, DEFAULT_TIME_STEP,
                                       DEFAULT_TISSUE_ALONG, METHOD_QUASI_STATIC,
@@ -43,7 +44,7 @@ BEND_LIMIT = 1.1
 than 10 % is counted as buckled (a bound of 1.1 on arc/chord, taken relative to the
 rest shape, which some fibres exceed at rest: the demo thigh's adductor brevis up to 1.15): a
 fibre that keeps its shape stays at 1, a fibre folding instead of shortening goes above (1.3-1.7
-at the elbow's 130 degrees without ``FibreShortening``), as may one that wraps a bone."""
+at the elbow's 130 degrees without fibre shortening), as may one that wraps a bone."""
 PAPER_VOLUME_ERROR_PCT = 2.71
 """The paper's mean volume error over its motion (%)."""
 ACCEPTED_VOLUME_ERROR_PCT = 6.0
@@ -51,19 +52,19 @@ ACCEPTED_VOLUME_ERROR_PCT = 6.0
 SLOPE_WINDOW = (0.5, 1.0)
 """The later phase of the paper relaxation whose slope Fig. 6 compares: these fractions of the
 iterations (the second half), fitted as log10(mean displacement) against the iteration."""
-PAPER_MODEL = {"Method": METHOD_RELAXATION, "ConnectiveTissue": 0.0, "FibreShortening": False}
+PAPER_MODEL = by_name(method=METHOD_RELAXATION, connective_tissue=0.0, fibre_shortening=False)
 """The solver's properties of the layouts' paper relaxation: the paper's method and model (no
 connective tissue, fibres that keep their rest lengths), whatever the defaults are
-(TissueAlongFibres, which only the tissue reads, stays at its default: set, the solver would
+(the tissue's along-fibre fraction, which only the tissue reads, stays at its default: set, the solver would
 warn that it has no effect)."""
-DEFAULT_MODEL = {"Method": METHOD_QUASI_STATIC, "ConnectiveTissue": DEFAULT_CONNECTIVE_TISSUE,
-                 "TissueAlongFibres": DEFAULT_TISSUE_ALONG,
-                 "FibreShortening": DEFAULT_FIBRE_SHORTENING}
+DEFAULT_MODEL = by_name(method=METHOD_QUASI_STATIC, connective_tissue=DEFAULT_CONNECTIVE_TISSUE,
+                        tissue_along=DEFAULT_TISSUE_ALONG,
+                        fibre_shortening=DEFAULT_FIBRE_SHORTENING)
 """The same properties for the layouts' quasi-static solves: the defaults' model."""
 TIME_STEP_HALVINGS = 2
-"""How often a layout's paper relaxation may halve the TimeStep after a muscle diverged."""
+"""How often a layout's paper relaxation may halve the time step after a muscle diverged."""
 LAYOUT_QUASI_STATIC_CAP = 1500
-"""Iterations the layouts' quasi-static solves may take."""
+"""The iterations the layouts' quasi-static solves may take."""
 PHASES = tuple(A.PHASE_SECONDS)
 """The solver's parts: MSS steps, muscle-muscle and muscle-bone collision detection and response,
 final collision passes."""
@@ -239,12 +240,13 @@ def _particles(particles) -> np.ndarray:
 
 def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
     """The pipeline and the paper relaxation's solve of time point ``index`` with ``layout``
-    at the solver's TimeStep, or at half or a quarter of it where a muscle diverges (Delaunay's
+    at the solver's time step, or at half or a quarter of it where a muscle diverges (Delaunay's
     stiffer springs need 0.025 s): ``(pipeline, result, time step s)``."""
     for halvings in range(TIME_STEP_HALVINGS + 1):
         step = DEFAULT_TIME_STEP / 2 ** halvings
         pipeline = build_pipeline(scene_folder, {
-            "ParticlesPerFibre": resolution, "Layout": layout, "TimeStep": step, **PAPER_MODEL})
+            "ParticlesPerFibre": resolution, "Layout": layout, **by_name(time_step=step),
+            **PAPER_MODEL})
         try:
             return pipeline, solve_time_point(pipeline, index), step
         except MuscleMSSError:
@@ -254,7 +256,7 @@ def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
 
 def layout_result(scene_folder, layout: str, resolution: int, index: int) -> LayoutResult:
     """Solve the pose ``index`` with ``layout`` by the paper relaxation (its defaults and the
-    paper's model, :data:`PAPER_MODEL`, the TimeStep halved where it diverges) and by the
+    paper's model, :data:`PAPER_MODEL`, the time step halved where it diverges) and by the
     quasi-static method (the solver's defaults)."""
     pipeline, paper, time_step = _paper_solve(scene_folder, layout, resolution, index)
     muscles = [row[A.MUSCLE] for row in paper.rows]

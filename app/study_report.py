@@ -362,7 +362,7 @@ def report_html(study: Study, out: str) -> str:
         f"{_window_text(study)} (shaded in Fig. 5): the more negative, the faster the layout "
         "settles. <i>to threshold</i>: the first iteration at which every muscle moved less "
         "than the DisplacementThreshold (0: not within the iterations). A layout whose "
-        "relaxation diverges at the solver's TimeStep runs at half of it (<i>time_step_s</i>; "
+        "relaxation diverges at the solver's time step runs at half of it (<i>time_step_s</i>; "
         "Delaunay's stiffer springs need 0.025 s).</p>",
         _image(out, DISPLACEMENT, "mean displacement per iteration per muscle and layout"),
         _image(out, SLOPES, "slope of the later phase per layout and muscle"),

@@ -39,22 +39,23 @@ from muscle_mss.core.settings import (METHOD_QUASI_STATIC, METHOD_RELAXATION, ME
                                       SPRINGS_HOOKE, STRUCTURE_BVH, STRUCTURES,
                                       TERMINATION_THRESHOLD)
 
-from muscle_mss.filters.collision_solver import BONE_CONTACTS
+from muscle_mss.core.settings import BONE_CONTACTS
+from muscle_mss.core.solver_properties import by_name, name_of
 from . import motion_run
 
-DEFAULT_VARIANTS = ({"Iterations": 3}, {"Iterations": 30})
+DEFAULT_VARIANTS = (by_name(iterations=3), by_name(iterations=30))
 """The default settings (the method :mod:`muscle_mss.core.settings` makes the default): the
 kernels a first run uses, compiled before any other. Python calls some kernels only when the
 data asks for them, so the tiny scene is solved twice: 3 iterations leave surface vertices
 inside a bone (the MVC Surface Deformer's push), 30 move spheres far enough for their lists
 to be patched in their grid (tests/test_compile_scope.py)."""
 OTHER_VARIANTS = tuple(
-    {"Iterations": 3, "Method": method, "CollisionStructure": structure, "BoneContact": contact,
-     "ConnectiveTissue": 0.0, "FibreShortening": False}
+    by_name(iterations=3, method=method, structure=structure, bone_contact=contact,
+            connective_tissue=0.0, fibre_shortening=False)
     for method in METHODS for structure in STRUCTURES for contact in BONE_CONTACTS) + (
-    {"Iterations": 3, "Method": METHOD_RELAXATION, "CollisionStructure": STRUCTURE_BVH,
-     "Blending": LINEAR, "Termination": TERMINATION_THRESHOLD},
-    {"Iterations": 3, "Method": METHOD_QUASI_STATIC, "Springs": SPRINGS_HOOKE},
+    {**by_name(iterations=3, method=METHOD_RELAXATION, structure=STRUCTURE_BVH,
+               termination=TERMINATION_THRESHOLD), "Blending": LINEAR},
+    by_name(iterations=3, method=METHOD_QUASI_STATIC, springs=SPRINGS_HOOKE),
 )
 """Every method with every collision structure and bone contact (without the connective tissue
 and fibre shortening, whose kernels the defaults reach and whose absence calls others; each
@@ -64,7 +65,7 @@ a later choice compiles nothing either."""
 VARIANTS = DEFAULT_VARIANTS + OTHER_VARIANTS
 """Filter settings whose tiny solves together call every kernel with the argument types of a
 real run (property values select kernels, not argument types), the defaults first."""
-KERNEL_NEUTRAL_SETTINGS = frozenset({"ParticlesPerFibre", "Iterations"})
+KERNEL_NEUTRAL_SETTINGS = frozenset({"ParticlesPerFibre", name_of("iterations")})
 """Filter properties whose values do not change which kernels a run calls: a run that sets no
 other needs only the default settings' kernels (:func:`scope_for`)."""
 _settled = {kernel_cache.EVERY_KERNEL: False, kernel_cache.DEFAULT_KERNELS: False}
@@ -116,7 +117,7 @@ def shares(scope: str):
     125 s)."""
     if scope == kernel_cache.DEFAULT_KERNELS:
         return DEFAULT_VARIANTS, ()
-    first = tuple(v for v in OTHER_VARIANTS if v.get("Method") == METHOD_RELAXATION
+    first = tuple(v for v in OTHER_VARIANTS if v.get(name_of("method")) == METHOD_RELAXATION
                   and "Blending" not in v)
     return DEFAULT_VARIANTS + first, tuple(v for v in OTHER_VARIANTS if v not in first)
 

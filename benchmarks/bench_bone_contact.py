@@ -39,7 +39,7 @@ from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.contacts.solid_contacts import solid_points
 from muscle_mss.core.settings import METHOD_RELAXATION, SolverSettings
 from muscle_mss.filters.bone_sets import solid_bones
-from muscle_mss.filters.collision_solver import BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES
+from muscle_mss.core.settings import BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES
 from muscle_mss.app.motion_run import build_pipeline, solve_time_point, update_at
 from muscle_mss.filters.scene_io import write_scene
 

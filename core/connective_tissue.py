@@ -2,7 +2,7 @@
 intermuscular septa and fascia tie every muscle to its neighbours and to the tissue around it,
 which moves with the skeleton. Modelled as a spring of stiffness ``k_i`` holding each free
 particle ``i`` toward its *target* ``t_i``, its rest position carried by the pose (the Rigid
-Pose Transform's posed position; in a muscle that ``FibreShortening`` shortens, its rest shape
+Pose Transform's posed position; in a muscle that fibre shortening shortens, its rest shape
 shortened between its attachments: :func:`~muscle_mss.core.fibre_shortening.shortened_target`):
 
     E_tissue = sum_i k_i |x_i - t_i|^2 / 2        (g mm^2 / s^2)
@@ -61,13 +61,6 @@ def tissue_stiffness(model, order, fixed, ratio: float) -> np.ndarray:
     stiffness = (float(ratio) * mean_spring * scale)[muscle][order]
     stiffness[np.asarray(fixed, dtype=bool)] = 0.0
     return stiffness
-
-
-def check_along(along: float) -> None:
-    """Raise :class:`MuscleMSSError` unless the along-fibre fraction is in [0, 1]."""
-    if not 0.0 <= along <= 1.0:
-        raise MuscleMSSError(f"solver tissue along fibres is {along}; it must be a fraction of "
-                             "the tissue's stiffness across the fibres, from 0 to 1")
 
 
 def tissue_targets(model, order, along: float) -> np.ndarray:

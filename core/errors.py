@@ -51,7 +51,7 @@ def checked_points(points, what="points") -> np.ndarray:
 
 
 class PoseError(MuscleMSSError):
-    """A muscle that cannot be solved in the pose asked: its ends too close for FibreShortening,
+    """A muscle that cannot be solved in the pose asked: its ends too close for fibre shortening,
     or a solve that diverged. The core does not know the pose's time; the MSS Collision Solver
     filter adds it with :meth:`at`. The message is ``muscle 'NAME'[ at time T s]`` followed by
     ``text`` (which starts with ``:`` or a space)."""

@@ -1,4 +1,4 @@
-"""Fibres that shorten with their muscle (``FibreShortening``).
+"""Fibres that shorten with their muscle (the solver's fibre shortening).
 
 The paper's springs keep their rest lengths whatever the pose, so a muscle whose attachments
 come closer keeps its fibre length and folds (the demo arm's brachialis at 130 degrees: fibres
@@ -42,6 +42,7 @@ from .cage import polyline_lengths
 from .errors import PoseError
 from .model import MSSModel
 from .rigid_fit import rigid_fit
+from .solver_properties import ROW_OF_FIELD
 
 TARGET_BLEND = 0.1
 """The muscle shortening (1 - s_m) over which the connective tissue's target passes from the
@@ -212,11 +213,12 @@ def check_ends(model: MSSModel, fibres=None) -> None:
     m = int(np.argmin(muscle_ratio)) if len(muscle_ratio) else 0
     if not (len(ratio) and min(ratio[f], muscle_ratio[m]) < SHORTEST):
         return
-    rule = (f"FibreShortening gives no rest shape to a muscle or fibre whose ends come closer "
+    row = ROW_OF_FIELD["fibre_shortening"]
+    rule = (f"{row.name} gives no rest shape to a muscle or fibre whose ends come closer "
             f"than {SHORTEST:.0%} of their rest distance (its rest shape, shortened along and "
             "widened across to keep the volume, would grow without bound); check the motion "
-            "of the bones it is attached to at this time, or turn FibreShortening off "
-            "(--no-fibre-shortening) to let its fibres keep their lengths and fold")
+            f"of the bones it is attached to at this time, or turn {row.name} off "
+            f"(--no-{row.option.flag[2:]}) to let its fibres keep their lengths and fold")
     if muscle_ratio[m] <= ratio[f]:
         a, b = first[muscle == m], last[muscle == m]
         at_rest = np.linalg.norm(rest[b].mean(axis=0) - rest[a].mean(axis=0))

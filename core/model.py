@@ -15,7 +15,9 @@ import numpy as np
 from .cage import muscle_cage
 from .errors import MuscleMSSError
 from .mss import VolumeCages, lattice_order, spring_layout
-from .settings import METHOD_RELAXATION, TERMINATION_ITERATIONS
+from .solver_properties import name_of
+from .settings import (BONE_CONTACT_NONE, BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES,
+                       METHOD_RELAXATION, TERMINATION_ITERATIONS)
 from .volume import signed_volume
 
 
@@ -150,10 +152,6 @@ class SolveResult:
         return self.muscle_pairs + self.bone_pairs
 
 
-BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, BONE_CONTACT_NONE = "solid", "sphere set", "none"
-BONE_CONTACTS = (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES)
-
-
 @dataclass(frozen=True)
 class Bones:
     """The posed bones as the muscle-bone contacts read them: ``solids`` (a
@@ -181,11 +179,13 @@ NO_BONES = Bones()
 
 @dataclass
 class PreparedModel:
-    """What depends only on the model's topology: particle order and spring layout.
-    ``cache`` holds other methods' data of this model (the quasi-static spring table);
-    ``matrix_cache`` what depends on the springs' stiffnesses and the fixed particles but not
-    on their rest lengths (the quasi-static factorisation), which :func:`with_rest_state`
-    keeps."""
+    """What depends only on the model's topology: particle order and spring layout, and what
+    the quasi-static method builds of this model on first use: ``spring_table`` (its
+    :class:`~muscle_mss.core.quasi_static.preconditioner.SpringTable`, which holds the rest
+    lengths: :func:`with_rest_state` drops it) and ``factorisations`` (its
+    :class:`~muscle_mss.core.quasi_static.preconditioner.Preconditioner` by connective tissue
+    ratio, which depend on the springs' stiffnesses and the fixed particles but not on their
+    rest lengths: :func:`with_rest_state` keeps them)."""
 
     order: np.ndarray
     offsets: np.ndarray
@@ -197,9 +197,9 @@ class PreparedModel:
     fixed: np.ndarray
     boundary: np.ndarray
     in_bone_at_rest: np.ndarray | None = None   # (n,) bool, solver order, or None: not known
-    cache: dict = field(default_factory=dict)
     stable_step: tuple | None = None            # stable_time_step(model) (springs, masses)
-    matrix_cache: dict = field(default_factory=dict)
+    spring_table: object = None
+    factorisations: dict = field(default_factory=dict)
 
 
 def prepare(model: MSSModel) -> PreparedModel:
@@ -230,8 +230,8 @@ def prepare(model: MSSModel) -> PreparedModel:
 def with_rest_state(prep: PreparedModel, model: MSSModel) -> PreparedModel:
     """``prep``, prepared for a model with ``model``'s topology, rest pose, masses, spring
     stiffnesses and damping and fixed particles, made ready for ``model``, whose springs' rest
-    lengths and rest vectors may differ (FibreShortening gives every pose its own): the spring
-    layout built again, the particle order, cages, stable step and ``matrix_cache`` kept (the
+    lengths and rest vectors may differ (fibre shortening gives every pose its own): the spring
+    layout built again, the particle order, cages, stable step and ``factorisations`` kept (the
     same arrays as :func:`prepare` would give; the quasi-static factorisation costs 0.05 s a
     pose of the demo thigh at N = 20, 0.3 s at N = 80)."""
     rank = np.empty(len(prep.order), dtype=np.int64)
@@ -239,7 +239,7 @@ def with_rest_state(prep: PreparedModel, model: MSSModel) -> PreparedModel:
     springs = rank[np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)]
     layout = spring_layout(springs, model.rest_length, model.stiffness, model.damping,
                            prep.offsets)
-    return replace(prep, layout=layout, cache={})
+    return replace(prep, layout=layout, spring_table=None)
 
 
 def volume_cages(model: MSSModel, rank) -> VolumeCages:
@@ -277,7 +277,7 @@ def volume_cages(model: MSSModel, rank) -> VolumeCages:
 STABILITY_MARGIN = 3.0
 
 # The per-iteration history (mean displacement of each muscle and four columns) is refused above
-# this size: Iterations caps a time budget's solve, and 1e9 would ask for tens of GiB.
+# this size: the iteration cap caps a time budget's solve, and 1e9 would ask for tens of GiB.
 MAX_HISTORY_BYTES = 2 * 1024 ** 3
 
 
@@ -329,11 +329,12 @@ def stability_problem(model: MSSModel, time_step: float, stable_step=None) -> st
     unit = "g/s^2" if kind == "stiffness" else "g/s"
     fix = ("raise the Spring Builder's Mass or lower its Stiffness" if kind == "stiffness"
            else "raise the Spring Builder's Mass or lower its Damping")
-    return (f"the model cannot be solved with TimeStep {time_step:g} s: particle {p} of "
+    step = name_of("relaxation.time_step")
+    return (f"the model cannot be solved with {step} {time_step:g} s: particle {p} of "
             f"muscle '{model.names[m]}' (mass {float(model.mass[lo + p]):.3g} g, springs of "
             f"total {kind} {total:.3g} {unit}) is stable only below {dt:.3g} s, and explicit "
             f"integration would blow up ({time_step / dt:.3g} times too long); lower the "
-            f"MSS Collision Solver's TimeStep below {dt:.3g} s, or {fix}")
+            f"MSS Collision Solver's {step} below {dt:.3g} s, or {fix}")
 
 
 def check_history_size(iterations, muscles: int) -> None:
@@ -343,7 +344,7 @@ def check_history_size(iterations, muscles: int) -> None:
     if size > MAX_HISTORY_BYTES:
         most = int(MAX_HISTORY_BYTES // ((muscles + 4) * 8))
         raise MuscleMSSError(
-            f"Iterations {int(iterations)} would need a {size / 1024 ** 3:.3g} GiB history "
+            f"{name_of('iterations')} {int(iterations)} would need a {size / 1024 ** 3:.3g} GiB history "
             f"({muscles} muscles + 4 values per iteration); at most "
             f"{MAX_HISTORY_BYTES / 1024 ** 3:.3g} GiB ({most} iterations) are allowed; lower "
-            "Iterations (it caps every termination)")
+            f"{name_of('iterations')} (it caps every termination)")

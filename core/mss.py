@@ -1,7 +1,7 @@
 """The mass-spring system of the muscles (the paper's §3.1–3.2).
 
 Particles of every muscle are held in one structure-of-arrays: positions and velocities are
-``(3, n)`` float64 (mm, mm/s), the muscles one after another (``muscle_offsets``). Springs follow
+``(3, n)`` float64 (mm, mm/s), the muscles one after another (``muscle_offsets``). The springs follow
 Hooke's law with damping along the spring: for a spring from particle ``a`` to ``b`` with rest
 length ``L0`` (mm), stiffness ``k`` (g/s^2) and damping ``c`` (g/s), ``d = x_b - x_a``,
 ``L = |d|``, the force on ``a`` is ::
@@ -19,12 +19,12 @@ pressure's stiff whole-cage mode is taken implicitly too (:func:`_implicit_volum
 that a stiff BulkModulus does not shorten the stable time step. The step is semi-implicit Euler, ``v = (v + dt f / m) / (1 + dt drag)``, ``x += dt v``; fixed particles
 (tendon attachments) never move.
 
-Speed. Springs are grouped into *runs*: springs of one muscle with the same index offset
+Speed. The springs are grouped into *runs*: springs of one muscle with the same index offset
 ``d = b - a`` and the same stiffness and damping. A run whose springs cover at least half of
 the index range they span is stored densely ("lanes": one rest length per index, -1 where that
 index has no spring), so the force loop reads positions at ``a`` and ``a + d`` contiguously and
 vectorises. A lattice with its particles ordered by (row, col, fibre_index) has 13 such runs per
-muscle (:func:`lattice_order` gives that order). Springs in sparser runs (Delaunay, k-NN) take a
+muscle (:func:`lattice_order` gives that order). The springs in sparser runs (Delaunay, k-NN) take a
 scalar loop. The muscles are independent tasks of one ``prange``; inside a muscle every sum has
 a fixed order, so results are bitwise reproducible whatever the thread count.
 """
@@ -51,7 +51,7 @@ NO_SPRING = -1.0   # rest length of a dense lane without a spring
 SpringLayout = namedtuple("SpringLayout", (
     "runs_int", "runs_param", "lane_rest", "run_ptr", "scattered_int", "scattered_param",
     "scattered_ptr"))
-SpringLayout.__doc__ = """Springs grouped for the force kernel (see the module docstring).
+SpringLayout.__doc__ = """The springs grouped for the force kernel (see the module docstring).
 
 ``runs_int`` (R, 4) int64: first particle ``a``, number of lanes, offset ``d``, first lane.
 ``runs_param`` (R, 2) float64: stiffness (g/s^2) and damping (g/s) of the run.
@@ -338,7 +338,7 @@ def _implicit_volume_forces(m, state):
     g g^T``, ``g = dV/dx`` over the whole cage: one stiff mode (every cage vertex moving along
     its normal at once) whose explicit step is stable only below ``dt = 2 / sqrt(bulk_modulus /
     V_rest g^T M^-1 g)`` (0.03 s for the small demo's thigh at BulkModulus 50, below the
-    default TimeStep). The backward Euler velocity change ``(M + dt^2 K) dv = dt (f - dt K v)``
+    default time step). The backward Euler velocity change ``(M + dt^2 K) dv = dt (f - dt K v)``
     is solved in closed form (Sherman-Morrison): the force handed to the integration becomes
     ``r - g (c g^T M^-1 r) / (1 + c g^T M^-1 g)``, ``r = f - dt K v``, ``c = dt^2 bulk_modulus
     / V_rest``. Stable at any BulkModulus; the equilibria (``f = 0``, ``v = 0``) are unchanged.

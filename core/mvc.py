@@ -38,7 +38,7 @@ from .errors import MuscleMSSError, check_memory
 from .mesh_checks import surface_problems
 
 DEFAULT_TOLERANCE = 1e-12
-"""Tolerance of the degenerate cases: distances in units of the cage's bounding-box diagonal,
+"""The tolerance of the degenerate cases: distances in units of the cage's bounding-box diagonal,
 barycentric coordinates and triple products of unit directions as they are."""
 
 @numba.njit(cache=True)
@@ -239,7 +239,7 @@ def mean_value_coordinates(cage_points, cage_triangles, points, tolerance=DEFAUL
     points = points - centre
     check_memory(f"{where}: the mean value coordinates of {len(points)} surface vertices "
                  f"on {len(cage_points)} cage vertices", 8.0 * len(points) * len(cage_points),
-                 "lower ParticlesPerFibre (the cage holds the boundary particles)")
+                 "use fewer particles per fibre (the cage holds the boundary particles)")
     weights = np.empty((len(points), len(cage_points)), dtype=np.float64)
     if len(points):
         a, b, c = (cage_points[cage_triangles[:, k]] for k in range(3))
@@ -257,7 +257,7 @@ def mean_value_coordinates(cage_points, cage_triangles, points, tolerance=DEFAUL
 WELL_CONDITIONED = 8.0
 """Sum of absolute weights up to which a point keeps its mean value coordinates as they are: a
 point whose weights' absolute values sum to S moves up to S times as far as the cage's
-non-affine motion. The surface vertices of the demo scenes at ParticlesPerFibre 20 reach 7.9
+non-affine motion. The surface vertices of the demo scenes at 20 particles per fibre reach 7.9
 (the full thigh's semimembranosus), 3.5 on the small thigh."""
 ILL_CONDITIONED = 10.0
 """Sum of absolute weights from which a point takes the weights of its nearest cage point
@@ -273,7 +273,7 @@ def bounded_coordinates(cage_points, cage_triangles, points, tolerance=DEFAULT_T
     a tendon). Next to such a fold the rays from a point cross the cage leaving and entering at
     nearly the same distances, the total weight nearly cancels, and the normalised weights grow
     large and of both signs: 11,940 in absolute sum for a vertex 0.47 mm outside the small
-    demo's rectus femoris cage at ParticlesPerFibre 8, which then ended metres away. The mean
+    demo's rectus femoris cage at 8 particles per fibre, which then ended metres away. The mean
     value coordinates are exact for affine motions of the cage, but amplify its non-affine
     motion by their absolute sum S. So a point with S up to :data:`WELL_CONDITIONED` keeps its
     mean value coordinates (bitwise), one with S from :data:`ILL_CONDITIONED` takes the

@@ -58,8 +58,9 @@ from .contacts.sphere_contacts import (bounding_box, collide, collision_spheres,
 from .errors import MuscleMSSError, PoseError
 from .model import (NO_BONES, Bones, MSSModel, PreparedModel, SolveResult, check_history_size,
                     prepare, stability_problem)
-from .connective_tissue import check_along, tissue_stiffness, tissue_targets
+from .connective_tissue import tissue_stiffness, tissue_targets
 from .mss import mss_state, muscle_step
+from .solver_properties import name_of
 from .settings import (METHOD_RELAXATION, TERMINATION_BUDGET,
                        TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATIONS,
                        SolverSettings)
@@ -169,25 +170,6 @@ def _respond_and_measure(x, v, x_prev, offsets, particle, disp, collided, sphere
         mean_disp[m] = _mean_step(x, x_prev, offsets[m], offsets[m + 1])
 
 
-def check_settings(settings: SolverSettings) -> None:
-    """Raise :class:`MuscleMSSError` unless ``settings`` are valid for this method."""
-    if settings.termination not in TERMINATIONS:
-        raise MuscleMSSError(f"termination {settings.termination!r} is not one of "
-                             f"{', '.join(TERMINATIONS)}")
-    settings.contacts.check()
-    for name, value in (("iterations", settings.iterations),
-                        ("time step", settings.relaxation.time_step)):
-        if not value > 0:
-            raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
-    for name, value in (("displacement threshold", settings.relaxation.displacement_threshold),
-                        ("time budget", settings.time_budget),
-                        ("drag", settings.relaxation.drag),
-                        ("bulk modulus", settings.bulk_modulus),
-                        ("connective tissue", settings.connective_tissue)):
-        if not (value >= 0.0 and np.isfinite(value)):
-            raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
-    check_along(settings.tissue_along)
-
 
 def _divergence_limits(positions, offsets, reach) -> np.ndarray:
     """(M,) mm: a muscle's bounding-box diagonal plus ``reach`` (the farthest one collision
@@ -218,7 +200,6 @@ def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings 
                              "takes no start positions")
     bones = bones or NO_BONES
     bone_solids = bones.solids
-    check_settings(settings)
     if bone_solids is not None:
         bone_solids.check()
     prep = prepared if prepared is not None else prepare(model)
@@ -325,7 +306,8 @@ def _diverged(model, settings, history, done, bad):
     raise PoseError(
         model.names[bad], f" diverged at iteration {done}: its mean particle "
         f"displacement was {history.mean_displacement[done - 1, bad]:.3g} mm in one "
-        f"iteration; lower the TimeStep (now {settings.relaxation.time_step} s) or "
+        f"iteration; lower the {name_of('relaxation.time_step')} (now "
+        f"{settings.relaxation.time_step} s) or "
         "check stiffness and mass")
 
 

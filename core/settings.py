@@ -9,11 +9,8 @@ CLI's and the batch's options take their defaults and choices from here.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 
-import numpy as np
-
-from .errors import MuscleMSSError
 from .contacts.octree_bvh import MAX_DEPTH as DEFAULT_BVH_MAX_DEPTH
 from .contacts.octree_bvh import MIN_PRIMITIVES as DEFAULT_BVH_MIN_PRIMITIVES
 
@@ -21,7 +18,10 @@ from .contacts.octree_bvh import MIN_PRIMITIVES as DEFAULT_BVH_MIN_PRIMITIVES
 
 METHOD_QUASI_STATIC = "quasi-static"
 METHOD_RELAXATION = "paper relaxation"
-METHODS = (METHOD_QUASI_STATIC, METHOD_RELAXATION)
+METHOD_PARTS = {METHOD_QUASI_STATIC: "quasi_static", METHOD_RELAXATION: "relaxation"}
+"""Each method's module under ``core/`` (imported when first used), which is also the name of
+its part of :class:`SolverSettings`, the settings that method alone reads."""
+METHODS = tuple(METHOD_PARTS)
 
 TERMINATION_ITERATIONS = "iterations"
 TERMINATION_THRESHOLD = "displacement threshold"
@@ -31,6 +31,9 @@ TERMINATIONS = (TERMINATION_ITERATIONS, TERMINATION_THRESHOLD, TERMINATION_BUDGE
 STRUCTURE_HASH = "spatial hash"
 STRUCTURE_BVH = "octree BVH"
 STRUCTURES = (STRUCTURE_HASH, STRUCTURE_BVH)
+
+BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES, BONE_CONTACT_NONE = "solid", "sphere set", "none"
+BONE_CONTACTS = (BONE_CONTACT_SOLID, BONE_CONTACT_SPHERES)
 
 SPRINGS_HOOKE = "Hooke"
 SPRINGS_COROTATIONAL = "co-rotational"
@@ -53,7 +56,7 @@ DEFAULT_TIME_BUDGET = 1.0               # s
 # fibres are stretched ~10 % (lattice-26 cells 2.5 times longer than wide narrow several
 # times faster than they stretch). Muscle is nearly incompressible, and the volume term's stiff
 # mode is implicit (mss._implicit_volume_forces), so a stiff term does not shorten the stable
-# TimeStep; above 200 little is gained, the rest of the surface's error being the MVC map's and
+# time step; above 200 little is gained, the rest of the surface's error being the MVC map's and
 # the bone push's (docs/accuracy.md, "The elbow at 130°").
 DEFAULT_BULK_MODULUS = 200.0            # g/(mm s^2)
 # The connective tissue (epimysium, septa, fascia) holding every free particle toward its posed
@@ -79,6 +82,11 @@ DEFAULT_FIBRE_SHORTENING = True
 # tolerance.
 DEFAULT_PROJECTION_PASSES = 100
 DEFAULT_PENETRATION_TOLERANCE = 0.01    # mm
+# The bones as solids (their signed distance) keep every free particle out and are the faster;
+# the paper's sphere sets (core/bones/spheres.py) at this spacing give about 8,600 spheres on the
+# demo pelvis, the paper's 8527.
+DEFAULT_BONE_CONTACT = BONE_CONTACT_SOLID
+DEFAULT_BONE_SPHERE_SPACING = 2.05      # mm
 
 # ---- defaults of the paper relaxation --------------------------------------------------------
 
@@ -113,8 +121,11 @@ DEFAULT_SPRINGS = SPRINGS_COROTATIONAL
 class ContactSettings:
     """What both methods read of the contacts: the ``structure`` that finds them (one of
     :data:`STRUCTURES`; the octree BVH's ``bvh_max_depth`` and ``bvh_min_primitives``), which
-    count (``muscle_muscle``, ``muscle_bone``), and the final collision passes, run up to
-    ``projection_passes`` times until no overlap exceeds ``penetration_tolerance`` mm."""
+    count (``muscle_muscle``, ``muscle_bone``), the final collision passes, run up to
+    ``projection_passes`` times until no overlap exceeds ``penetration_tolerance`` mm, and how
+    the bones are given to the solve (``bone_contact``, one of :data:`BONE_CONTACTS`; sphere
+    sets at ``bone_sphere_spacing`` mm): the caller builds the
+    :class:`~muscle_mss.core.model.Bones` from these two."""
 
     structure: str = STRUCTURE_HASH
     bvh_max_depth: int = DEFAULT_BVH_MAX_DEPTH
@@ -123,23 +134,8 @@ class ContactSettings:
     muscle_bone: bool = True
     projection_passes: int = DEFAULT_PROJECTION_PASSES
     penetration_tolerance: float = DEFAULT_PENETRATION_TOLERANCE
-
-    def check(self) -> None:
-        """Raise :class:`MuscleMSSError` naming the first setting out of its range."""
-        if self.structure not in STRUCTURES:
-            raise MuscleMSSError(f"collision structure {self.structure!r} is not one of "
-                                 f"{', '.join(STRUCTURES)}")
-        if not (self.projection_passes >= 0
-                and int(self.projection_passes) == self.projection_passes):
-            raise MuscleMSSError(f"solver projection passes is {self.projection_passes}; it "
-                                 "must be a whole number, 0 or more")
-        for name, value in (("BVH max depth", self.bvh_max_depth),
-                            ("BVH min primitives", self.bvh_min_primitives)):
-            if not value > 0:
-                raise MuscleMSSError(f"solver {name} is {value}; it must be positive")
-        if not (self.penetration_tolerance >= 0.0 and np.isfinite(self.penetration_tolerance)):
-            raise MuscleMSSError(f"solver penetration tolerance is {self.penetration_tolerance}; "
-                                 "it must be finite and 0 or more")
+    bone_contact: str = DEFAULT_BONE_CONTACT
+    bone_sphere_spacing: float = DEFAULT_BONE_SPHERE_SPACING
 
 
 @dataclass(slots=True)
@@ -212,8 +208,7 @@ class SolverSettings:
         """Settings from flat keywords, each given to the part that has a field of its name
         (``SolverSettings.build(method=METHOD_QUASI_STATIC, iterations=300, tolerance=1e-4)``);
         an unknown name is a TypeError, as for the constructor."""
-        parts = {"contacts": ContactSettings, "relaxation": RelaxationSettings,
-                 "quasi_static": QuasiStaticSettings}
+        parts = {f.name: f.default_factory for f in fields(cls) if f.default_factory is not MISSING}
         own = {f.name for f in fields(cls)} - set(parts)
         unknown = set(values) - own - {f.name for part in parts.values() for f in fields(part)}
         if unknown:

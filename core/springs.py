@@ -1,4 +1,4 @@
-"""Springs between the particles of one muscle (the paper's §3.2, DESIGN §6 "Springs").
+"""The springs between the particles of one muscle (the paper's §3.2, DESIGN §6 "Springs").
 
 Four layouts, each returning the springs of one muscle as an ``(s, 2) int64`` array of particle
 index pairs ``(i, j)`` with ``i < j``, sorted, every spring once and none from a particle to itself
@@ -152,7 +152,7 @@ def lattice_places(grid, fibre_id, fibre_index, where: str = "particles"):
 
 def lattice_springs(grid, fibre_id, fibre_index, neighbourhood: int = 26,
                     where: str = "particles") -> np.ndarray:
-    """Springs of the cubic lattice layout (paper §3.2): (s, 2) int64.
+    """The springs of the cubic lattice layout (paper §3.2): (s, 2) int64.
 
     Arguments as :func:`lattice_places`; ``neighbourhood`` 6 (cube sides) or 26 (sides, face
     and space diagonals). On an ``R x C`` grid with ``n`` particles per fibre every particle not
@@ -196,7 +196,7 @@ def fibre_step(points, fibre_id, fibre_index) -> float:
 
 def delaunay_springs(points, where: str = "particles", surface=None,
                      longest_edge: float = np.inf) -> np.ndarray:
-    """Springs on the edges of the Delaunay tetrahedralisation of the particles: (s, 2) int64.
+    """The springs on the edges of the Delaunay tetrahedralisation of the particles: (s, 2) int64.
 
     points (P, 3) float64 mm. A particle that Qhull leaves out of the tetrahedralisation
     (one coinciding with another, e.g. fibre ends meeting at a tendon) is joined to the four
@@ -254,7 +254,7 @@ def delaunay_springs(points, where: str = "particles", surface=None,
 
 
 def knn_springs(points, k: int, workers: int = 1) -> np.ndarray:
-    """Springs from each particle to its ``k`` nearest particles, symmetric: (s, 2) int64.
+    """The springs from each particle to its ``k`` nearest particles, symmetric: (s, 2) int64.
 
     points (P, 3) float64 mm. A spring found from both ends is made once, so every particle has
     at least ``min(k, P - 1)`` springs (a muscle with ``k`` or fewer other particles is fully

@@ -1,7 +1,7 @@
 """The base of the six filters: ports and properties from one table, errors, progress, time.
 
 A filter subclasses :class:`MuscleFilter`, lists its ``INPUTS``, ``OUTPUTS`` (:class:`Port`) and
-``PROPERTIES`` (:class:`~muscle_mss.filters.properties.Property`), and implements
+``PROPERTIES`` (:class:`~muscle_mss.core.properties.Property`), and implements
 :meth:`MuscleFilter.execute`. It then works as a plain VTK algorithm in any Python with ``vtk``::
 
     f = FibreResampler(); f.SetInputConnection(0, reader.GetOutputPort()); f.Update()
@@ -31,7 +31,7 @@ from vtkmodules.vtkCommonExecutionModel import (vtkDemandDrivenPipeline,
 
 from muscle_mss.core.errors import Interrupted, MuscleMSSError
 
-from .properties import Property
+from muscle_mss.core.properties import Property
 
 SDDP = vtkStreamingDemandDrivenPipeline
 # the folder holding core/ and filters/: frames of muscle-mss in a traceback start with it (real

@@ -30,9 +30,10 @@ from muscle_mss.core.bones.exact_distance import exact_signed_distances
 from muscle_mss.core.bones.triangle_distance import (PreparedSurface, inside_surface,
                                                 prepared_surface, surface_digest)
 from muscle_mss.core.bones import field_store
-from muscle_mss.core.bones.spheres import DEFAULT_SPACING, bone_spheres
+from muscle_mss.core.bones.spheres import bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
-from muscle_mss.core.model import BONE_CONTACT_SOLID, Bones
+from muscle_mss.core.model import Bones
+from muscle_mss.core.settings import BONE_CONTACT_SOLID, DEFAULT_BONE_SPHERE_SPACING
 from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
 from muscle_mss.core.rigid_fit import rigid_fit
 
@@ -133,7 +134,7 @@ def cached_bone_spheres(points, triangles, spacing=None, where: str = "bone", us
     through the rigid-bone cache described in the module docstring (``use_cache=False``: always
     sample; ``digest``: the triangles' digest, :func:`_block_shape`). Returns ``(centres (k, 3)
     mm, radii (k,) mm)``, arrays the caller may keep."""
-    spacing = DEFAULT_SPACING if spacing is None else spacing
+    spacing = DEFAULT_BONE_SPHERE_SPACING if spacing is None else spacing
     if not use_cache:
         return bone_spheres(points, triangles, spacing, where=where)
     points = np.ascontiguousarray(points, dtype=np.float64)
@@ -309,10 +310,10 @@ def solid_bones(posed_bones) -> BoneSolids:
     return BoneSolids(fields, transforms, np.zeros(len(fields)))
 
 
-def contact_bones(posed_bones, contact: str, spacing: float = DEFAULT_SPACING,
+def contact_bones(posed_bones, contact: str, spacing: float = DEFAULT_BONE_SPHERE_SPACING,
                   muscle_bone: bool = True) -> Bones:
     """The posed bones multiblock as the solver's :class:`~muscle_mss.core.model.Bones` for the
-    bone ``contact`` (one of :data:`~muscle_mss.core.model.BONE_CONTACTS`): the sphere sets at
+    bone ``contact`` (one of :data:`~muscle_mss.core.settings.BONE_CONTACTS`): the sphere sets at
     ``spacing`` mm, or the solids (none when ``muscle_bone`` is off: nothing would read them)."""
     if contact != BONE_CONTACT_SOLID:
         return Bones(spheres=bone_sphere_set(posed_bones, spacing, POSED_BONES))

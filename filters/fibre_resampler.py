@@ -39,7 +39,7 @@ from muscle_mss.core.validation import far_point_problem, fibre_midpoints
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
-from .properties import Option, Property
+from muscle_mss.core.properties import Option, Property
 
 DEFAULT_PARTICLES_PER_FIBRE = 20
 """N, the paper's coarsest resolution (its experiments use 20, 40, 60 and 80)."""

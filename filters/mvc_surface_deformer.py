@@ -54,7 +54,7 @@ from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .bone_sets import INSIDE_TOLERANCE, cached_bone_field, field_surface
-from .properties import Property
+from muscle_mss.core.properties import Property
 
 # Share of the progress bar taken by the weights when they are (re)computed.
 _WEIGHTS_PROGRESS = 0.9

@@ -28,7 +28,7 @@ from . import array_names as A
 from . import vtk_arrays as V
 from .base import SDDP, MuscleFilter, Port
 from .bone_sets import clear_of_bones
-from .properties import Property
+from muscle_mss.core.properties import Property
 from .scene_io import check_motion_cells, motion_rows_from_table
 
 MOTION_PORT = 2  # index of the Motion input in INPUTS

@@ -44,7 +44,7 @@ from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .bone_sets import clear_of_bones
-from .properties import Option, Property
+from muscle_mss.core.properties import Option, Property
 
 LAYOUT_LATTICE_6, LAYOUT_LATTICE_26 = "lattice-6", "lattice-26"
 LAYOUT_DELAUNAY, LAYOUT_KNN = "Delaunay", "k-NN"

@@ -9,7 +9,7 @@
 ``.pvd`` series of deformed surfaces, fibres and particles and ``OUT/summary.csv``
 (``muscle_mss.app.run_output``). Under MPI rank r of K computes the r-th of K contiguous
 blocks of time points in time order; every time point starts from its posed state, so the
-ranks give the serial run's results (with the solver's ``WarmStart`` on, the quasi-static method
+ranks give the serial run's results (with the solver's warm start on, the quasi-static method
 would start each from the one before it within its block). ``--study`` writes the paper's
 experiments and the fibre-length study instead, as ``muscle-mss study`` does
 (``OUT/report.html``, :mod:`muscle_mss.app.study`), in one process.

@@ -32,7 +32,7 @@ def _documentation(text: str) -> str:
 
 
 def property_xml(prop) -> str:
-    """The Server Manager XML of one :class:`~muscle_mss.filters.properties.Property`."""
+    """The Server Manager XML of one :class:`~muscle_mss.core.properties.Property`."""
     xml_type = "DoubleVectorProperty" if prop.kind == "double" else "IntVectorProperty"
     default = prop.stored_default
     default_text = repr(float(default)) if prop.kind == "double" else str(int(default))

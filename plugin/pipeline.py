@@ -87,7 +87,7 @@ def load_state(state_file, data_directory=None, **options):
 def build_pipeline(scene_folder, show=True, settings=None):
     """Create readers and filters for ``scene_folder``; return them by name.
 
-    ``settings`` maps property names to values (e.g. ``{"ParticlesPerFibre": 40}``), set on
+    ``settings`` maps property names to values (as ``paraview.simple`` names them), set on
     every filter having that property. With ``show`` the results are shown in the active render
     view and a line chart of the convergence table is added beside it.
     """

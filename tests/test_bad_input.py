@@ -11,6 +11,7 @@ import pytest
 
 import bad_input_cases as B
 from muscle_mss.core.errors import Interrupted, MuscleMSSError
+from muscle_mss.core.solver_properties import ignored_settings
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -198,7 +199,7 @@ def test_settings_a_solver_ignores_are_warned_once_not_at_every_time_point():
                                                           " with BoneContact 'solid'"]
     solver.SetBoneContact("sphere set")
     solver.SetConnectiveTissue(0.1)
-    assert warned() == [] and solver.ignored_settings() == []
+    assert warned() == [] and ignored_settings(solver.settings()) == []
 
 
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
@@ -239,7 +240,7 @@ def test_sizes_too_large_for_memory_are_refused_before_allocating(monkeypatch):
     monkeypatch.setattr(errors, "memory_limit", lambda: 1000)
     with pytest.raises(MuscleMSSError, match=r"muscle 'm': cage: the mean value coordinates of "
                        r"100 surface vertices on 8 cage vertices would need 5.96e-06 GiB, more "
-                       r"than the 9.31e-07 GiB .*lower ParticlesPerFibre"):
+                       r"than the 9.31e-07 GiB .*use fewer particles per fibre"):
         mean_value_coordinates(cube, triangles, inside, where="muscle 'm': cage")
 
 

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from muscle_mss.core import solver
+from muscle_mss.core import divergence, solver
 from muscle_mss.core.errors import MuscleMSSError, PoseError
 from muscle_mss.core.fibre_shortening import SHORTEST, check_ends, shortened_springs
 from muscle_mss.core.settings import METHOD_QUASI_STATIC, METHOD_RELAXATION, SolverSettings
@@ -51,19 +51,19 @@ def test_paper_relaxation_stops_naming_the_muscle_when_it_runs_off():
 def test_a_solved_particle_farther_than_the_scene_is_across_or_not_finite_is_refused():
     model = slab(8)
     positions = np.array(model.positions, dtype=np.float64)
-    solver.check_solved(model, positions, METHOD_RELAXATION)
+    divergence.check_solved(model, positions, METHOD_RELAXATION)
     near = positions.copy()
     across = np.linalg.norm(np.ptp(positions, axis=0))
     near[17, 1] += across + 0.5
-    solver.check_solved(model, near, METHOD_RELAXATION)
+    divergence.check_solved(model, near, METHOD_RELAXATION)
     far = positions.copy()
     far[17, 1] += across + 1.5     # the scene's size: across + 1 mm (no radii, no bones)
     with pytest.raises(PoseError, match=r"^muscle 'slab' diverged in the paper relaxation "
                        r"solve: a particle of it ended [0-9.]+ mm from its posed place"):
-        solver.check_solved(model, far, METHOD_RELAXATION)
+        divergence.check_solved(model, far, METHOD_RELAXATION)
     far[17, 1] = np.nan
     with pytest.raises(PoseError, match="ended nan mm"):
-        solver.check_solved(model, far, METHOD_RELAXATION)
+        divergence.check_solved(model, far, METHOD_RELAXATION)
 
 
 def test_fibre_shortening_refuses_ends_closer_than_its_shortest_and_accepts_the_rest():

@@ -1,11 +1,14 @@
-"""The filters' property rows are the one definition of a setting: the solver's settings, the
-run's command-line options and the study's refusals are read off them."""
+"""The filters' property rows are the one definition of a setting: the solver's settings, their
+checks, the messages that name them, the run's command-line options and the study's refusals
+are read off them."""
 import argparse
 import dataclasses
 
 import pytest
 
+from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.settings import SolverSettings
+from muscle_mss.core.solver_properties import by_name, check_settings, name_of
 from muscle_mss.filters.collision_solver import MSSCollisionSolver
 from muscle_mss.app.run_options import (add_run_options, run_properties, settings_from,
                                             study_ignored)
@@ -52,6 +55,40 @@ def test_every_solver_setting_but_the_internal_ones_has_a_row():
                 yield prefix + f.name
     internal = {"quasi_static.contact_weight", "quasi_static.history"}
     assert set(paths(SolverSettings())) - internal == {p.field for p in FIELD_ROWS}
+
+
+def _out_of_range(prop):
+    """Values of ``prop`` its row refuses: below its minimum, above its maximum, a fraction of
+    a count, NaN; an enum's unknown text."""
+    if prop.kind == "enum":
+        return ["no such choice"]
+    if prop.kind == "bool":
+        return []
+    values = [float("nan")]
+    if prop.minimum is not None:
+        values.append(prop.minimum - 1 if prop.kind == "int" else prop.minimum - 1e-3)
+    if prop.maximum is not None:
+        values.append(prop.maximum + 1)
+    if prop.kind == "int":
+        values.append(prop.default + 0.5)
+    return values
+
+
+@pytest.mark.parametrize("prop, value", [(p, v) for p in FIELD_ROWS for v in _out_of_range(p)],
+                         ids=lambda x: getattr(x, "name", str(x)))
+def test_the_settings_check_refuses_what_the_row_refuses_naming_the_property(prop, value):
+    settings = SolverSettings.build(**{prop.field.rpartition(".")[2]: value})
+    with pytest.raises(MuscleMSSError, match=f"^property {prop.name} is "):
+        check_settings(settings)
+    check_settings(SolverSettings.build(**{prop.field.rpartition(".")[2]: prop.default}))
+
+
+def test_names_and_flat_settings_come_from_the_rows():
+    assert name_of("relaxation.time_step") == "TimeStep"
+    assert by_name(time_step=0.01, structure="octree BVH") == {"TimeStep": 0.01,
+                                                               "CollisionStructure": "octree BVH"}
+    with pytest.raises(TypeError, match="no solver property sets time_stop"):
+        by_name(time_stop=0.01)
 
 
 def _parser():

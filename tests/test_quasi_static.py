@@ -243,10 +243,11 @@ def test_warm_start_and_cold_start_agree(stretched):
 
 
 def test_bad_settings_and_start_are_refused(stretched):
-    with pytest.raises(MuscleMSSError, match="tolerance is -1"):
-        Q.solve(stretched, settings=quasi_static(tolerance=-1.0))
-    with pytest.raises(MuscleMSSError, match="contact weight"):
-        Q.solve(stretched, settings=quasi_static(contact_weight=0.0))
+    from muscle_mss.core.solver import solve
+    with pytest.raises(MuscleMSSError, match="property Tolerance is -1.0; it must be at least 0"):
+        solve(stretched, settings=quasi_static(tolerance=-1.0))
+    with pytest.raises(MuscleMSSError, match="contact weight is 0.0"):
+        solve(stretched, settings=quasi_static(contact_weight=0.0))
     with pytest.raises(MuscleMSSError, match="start positions"):
         Q.solve(stretched, start=np.zeros((3, 3)))
     before = stretched.positions.copy()

@@ -195,13 +195,14 @@ def test_the_progress_callback_aborts_the_solve(pressed):
 
 
 def test_bad_settings_are_refused(pressed):
-    with pytest.raises(MuscleMSSError, match="termination"):
+    with pytest.raises(MuscleMSSError, match="property Termination is 'forever'; it must be "
+                                             "one of iterations, displacement threshold"):
         run(pressed, termination="forever")
-    with pytest.raises(MuscleMSSError, match="time step"):
+    with pytest.raises(MuscleMSSError, match=r"property TimeStep is 0.0; it must be at least"):
         run(pressed, time_step=0.0)
-    with pytest.raises(MuscleMSSError, match="collision structure 'grid'"):
+    with pytest.raises(MuscleMSSError, match="property CollisionStructure is 'grid'"):
         run(pressed, structure="grid")
-    with pytest.raises(MuscleMSSError, match="solver method 'newton' is not one of"):
+    with pytest.raises(MuscleMSSError, match="property Method is 'newton'; it must be one of"):
         run(pressed, method="newton")
     with pytest.raises(MuscleMSSError, match="takes no start positions"):
         model, bones = pressed

@@ -439,11 +439,11 @@ def test_fibre_shortening_keeps_the_factorisation_across_poses_and_the_same_part
     solver, times = pipeline.solver, pipeline.times
     solved_points(pipeline, times[0])
     first = solver._prepared
-    factorisations = dict(first.matrix_cache)
+    factorisations = dict(first.factorisations)
     assert factorisations, "the quasi-static solve factorised nothing"
     later = solved_points(pipeline, times[-3])     # (the last repeats the first pose)
     assert solver.setup_counts["prepared"] == 1 and solver._prepared is first
-    assert all(solver._prepared.matrix_cache[k] is v for k, v in factorisations.items())
+    assert all(solver._prepared.factorisations[k] is v for k, v in factorisations.items())
     assert len(rest_lengths) == 2
     assert (rest_lengths[1] < rest_lengths[0]).any(), "no fibre shortened: nothing tested"
 

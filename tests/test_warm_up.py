@@ -193,7 +193,7 @@ def test_the_defaults_come_first_then_every_method_structure_and_bone_contact():
     from itertools import product
 
     from muscle_mss.core.settings import METHODS, STRUCTURES
-    from muscle_mss.filters.collision_solver import BONE_CONTACTS
+    from muscle_mss.core.settings import BONE_CONTACTS
     assert warm_up.VARIANTS[:len(warm_up.DEFAULT_VARIANTS)] == warm_up.DEFAULT_VARIANTS
     assert all(set(v) == {"Iterations"} for v in warm_up.DEFAULT_VARIANTS)
     combinations = {(v.get("Method"), v.get("CollisionStructure"), v.get("BoneContact"))

@@ -23,15 +23,15 @@ from numba import njit
 
 from ..errors import MuscleMSSError, check_memory
 from ..mesh_checks import checked_surface
-
-DEFAULT_SPACING = 2.05          # mm: ~8,600 spheres on the demo pelvis (paper: 8527)
+from ..settings import DEFAULT_BONE_SPHERE_SPACING as DEFAULT_SPACING
+from ..solver_properties import name_of
 SPHERES_PER_AREA = 0.62         # centres ~ SPHERES_PER_AREA * area / spacing^2
 CANDIDATES_PER_SPACING = 2      # candidate grid step = spacing / 2
 ORDER_BLOCK = 4096              # candidates shuffled within blocks of this many (cache locality)
 ORDER_SEED = 20140301           # fixed visiting order: same surface, same spheres
 # The largest spacing, as a fraction of the bone's smallest bounding-box side: each sphere's
 # radius is the spacing, so the spheres stand that far off the bone and hold the muscles there.
-# BoneSphereSpacing 1e6 mm made one sphere per bone that held every muscle 1e6 mm out (the
+# A spacing of 1e6 mm made one sphere per bone that held every muscle 1e6 mm out (the
 # small demo thigh's quasi-static solve wrote volume errors of 3e14 %). The demo bones' smallest
 # sides are 23.5 mm (the ulna) to 133 mm (the pelvis): 5.9-33 mm allowed, 2.05 by default.
 MAX_SPACING_SHARE = 0.25
@@ -142,7 +142,7 @@ def _sample(points, triangles, spacing, limit, where="bone"):
     cells = float(np.prod(np.floor((points.max(axis=0) - points.min(axis=0)) / spacing) + 1.0))
     check_memory(f"{where}: bone spheres {spacing:g} mm apart ({int(first[-1])} candidate "
                  f"points, a grid of {cells:.3g} cells)", 64.0 * first[-1] + 8.0 * cells,
-                 "raise the MSS Collision Solver's BoneSphereSpacing")
+                 f"raise the MSS Collision Solver's {name_of('contacts.bone_sphere_spacing')}")
     candidates = np.empty((int(first[-1]), 3))
     _candidates(points, triangles, q, first, candidates)
     # shuffled within blocks of neighbouring candidates: random enough for an even
@@ -175,7 +175,8 @@ def bone_spheres(points, triangles, spacing: float | None = None, count: int | N
                 f"bounding box is {side:.3g} mm at its thinnest: each sphere's radius is the "
                 "spacing, and spheres larger than a quarter of that "
                 f"({MAX_SPACING_SHARE * side:.3g} mm) hold the muscles that far off the bone; "
-                f"lower the MSS Collision Solver's BoneSphereSpacing (default {DEFAULT_SPACING:g} "
+                f"lower the MSS Collision Solver's {name_of('contacts.bone_sphere_spacing')} "
+                f"(default {DEFAULT_SPACING:g} "
                 "mm)")
         centres = _sample(points, triangles, spacing, len(points) + 10 ** 9, where)
         return centres, np.full(len(centres), spacing)

@@ -10,13 +10,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..bones.distance import BoneSolids, push_out_of_bones
-from ..connective_tissue import check_along, tissue_targets
+from ..connective_tissue import tissue_targets
 from ..contacts.sphere_contacts import (collision_spheres, contact_setup, final_passes, solved_state,
                                        world_box)
 from ..errors import MuscleMSSError, PoseError
 from ..model import (NO_BONES, Bones, MSSModel, PreparedModel, SolveResult, check_history_size,
                      prepare)
-from ..solver import scene_size
+from ..divergence import scene_size
+from ..solver_properties import name_of
 from ..settings import (METHOD_QUASI_STATIC, SPRING_ENERGIES,
                         TERMINATION_BUDGET, TERMINATION_ITERATIONS, SolverSettings)
 from .energy import ContactEnergy
@@ -39,7 +40,7 @@ ENERGY_ROUNDING = 1e-13
 # preconditioned step still moves a particle more than the tolerance (else it has converged).
 STALLED_STEPS = 50
 TERMINATION_STALLED = "energy rounding"
-# Iterations between updates of the volume gradient in the initial inverse Hessian (each update
+# The iterations between updates of the volume gradient in the initial inverse Hessian (each update
 # solves the spring matrix for it: three more columns). An initial inverse Hessian held for a
 # few iterations is still positive definite; the volume term's stiff mode changes slowly.
 VOLUME_REFRESH = 10
@@ -84,32 +85,6 @@ def _record(cap: int, n_muscles: int) -> IterationRecord:
                            np.zeros(cap), np.zeros(cap))
 
 
-def check_settings(settings: SolverSettings) -> None:
-    """Raise :class:`MuscleMSSError` unless ``settings`` are valid for this method."""
-    settings.contacts.check()
-    for name, value, least in (("iterations", settings.iterations, 1),
-                               ("history", settings.quasi_static.history, 0)):
-        if not (value >= least and int(value) == value):
-            raise MuscleMSSError(f"solver {name} is {value}; it must be a whole number, "
-                                 f"{least} or more")
-    for name, value in (("tolerance", settings.quasi_static.tolerance),
-                        ("bulk modulus", settings.bulk_modulus),
-                        ("connective tissue", settings.connective_tissue)):
-        if not (value >= 0.0 and np.isfinite(value)):
-            raise MuscleMSSError(f"solver {name} is {value}; it must be finite and 0 or more")
-    check_along(settings.tissue_along)
-    if settings.quasi_static.springs not in SPRING_ENERGIES:
-        raise MuscleMSSError(f"solver springs {settings.quasi_static.springs!r} is not one of "
-                             f"{', '.join(SPRING_ENERGIES)}")
-    weight = settings.quasi_static.weight
-    if not (weight > 0.0 and np.isfinite(weight)):
-        raise MuscleMSSError(f"solver contact weight is {weight}; it must be "
-                             "finite and positive")
-    if settings.budget is not None and not settings.budget >= 0.0:
-        raise MuscleMSSError(f"solver time budget is {settings.budget}; it must be 0 or "
-                             "more")
-
-
 def contact_stiffness(model: MSSModel, prep: PreparedModel, pre, settings) -> np.ndarray:
     """(n,) g/s^2, solver order: each particle's contact stiffness ``w``, the contact weight
     times the stiffest particle's spring sum times its muscle's
@@ -151,7 +126,6 @@ def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings 
     settings = settings or SolverSettings(method=METHOD_QUASI_STATIC)
     bones = bones or NO_BONES
     bone_solids = bones.solids
-    check_settings(settings)
     if bone_solids is not None:
         bone_solids.check()
     check_history_size(settings.iterations, len(model.names))
@@ -181,7 +155,7 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
     cap, the budget or a failed line search (:class:`LoopOutcome`). Raises
     :class:`~muscle_mss.core.errors.PoseError` naming the muscle (of ``names``) when the energy
     at the start is not finite or a particle gets farther from its start than ``size`` mm
-    (:func:`~muscle_mss.core.solver.scene_size`, :func:`_check_reach`): the energy has no
+    (:func:`~muscle_mss.core.divergence.scene_size`, :func:`_check_reach`): the energy has no
     minimum near the pose."""
     tolerance = settings.quasi_static.tolerance
     budget = settings.budget
@@ -270,8 +244,9 @@ def _check_reach(position, begin, size, free_muscle, names, done) -> float:
                         f"iteration {done} a particle of it lay {farthest:.3g} mm from its "
                         f"posed place, farther than the scene's size ({size:.3g} mm): "
                         "the model has no equilibrium near this pose; check the motion at "
-                        "this time, the springs' stiffness, BulkModulus, ConnectiveTissue and "
-                        "the bone contact (BoneSphereSpacing)")
+                        f"this time, the springs' stiffness, {name_of('bulk_modulus')}, "
+                        f"{name_of('connective_tissue')} and the bone contact "
+                        f"({name_of('contacts.bone_sphere_spacing')})")
     return farthest
 
 
@@ -280,7 +255,7 @@ def _not_finite(gradient, free_muscle, names):
     to blame, the :class:`MuscleMSSError`) of an energy that is not finite at the start."""
     bad = np.flatnonzero(~np.isfinite(gradient).all(axis=1))
     text = ("the quasi-static energy of the posed model is not finite: check the motion at "
-            "this time and the springs' rest lengths, stiffness and BulkModulus")
+            f"this time and the springs' rest lengths, stiffness and {name_of('bulk_modulus')}")
     if len(bad):
         raise PoseError(names[free_muscle[bad[0]]], f": {text} (a force on a particle of it "
                         "is not finite)")

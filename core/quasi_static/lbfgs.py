@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-# Iterations over which the residual's decay is measured. With 10, the walking pose of the full
+# The iterations over which the residual's decay is measured. With 10, the walking pose of the full
 # demo thigh (N = 20) stopped as converged after 1,292 iterations 0.020 / 1.14 mm (mean / max)
 # from a solve to 1e-5 mm: the last ten steps shrank faster than the slow bending modes behind
 # them. With 30 it stops after 1,945 iterations 0.0035 / 0.083 mm from it (60: the same).

@@ -5,6 +5,7 @@ stiffness (Sherman-Morrison). The muscles' triangular solves run in one parallel
 (:func:`solve_banded_blocks`)."""
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,16 +107,21 @@ def spring_order(model: MSSModel, prep: PreparedModel) -> np.ndarray:
     return np.argsort(prep.muscle[_solver_ends(model, prep)[:, 0]], kind="stable")
 
 
-def spring_table(model: MSSModel, prep: PreparedModel):
-    """Every spring's ends (solver order), rest length and stiffness, grouped by muscle
-    (:func:`spring_order`): ``(ends (S, 2), rest (S,), stiffness (S,), ptr (M + 1,))``."""
+SpringTable = namedtuple("SpringTable", "ends rest stiffness ptr")
+SpringTable.__doc__ = """Every spring's ends (solver order) ``(S, 2)``, rest length (mm) and
+stiffness (g/s^2) ``(S,)``, grouped by muscle (:func:`spring_order`), muscle ``m``'s springs
+at ``ptr[m]:ptr[m + 1]`` ``(M + 1,)``."""
+
+
+def spring_table(model: MSSModel, prep: PreparedModel) -> SpringTable:
+    """The model's :class:`SpringTable`."""
     ends = _solver_ends(model, prep)
     muscle = prep.muscle[ends[:, 0]]
     order = spring_order(model, prep)
     ptr = np.searchsorted(muscle[order], np.arange(len(prep.offsets))).astype(np.int64)
-    return (np.ascontiguousarray(ends[order]),
-            np.asarray(model.rest_length, dtype=np.float64)[order].copy(),
-            np.asarray(model.stiffness, dtype=np.float64)[order].copy(), ptr)
+    return SpringTable(np.ascontiguousarray(ends[order]),
+                       np.asarray(model.rest_length, dtype=np.float64)[order].copy(),
+                       np.asarray(model.stiffness, dtype=np.float64)[order].copy(), ptr)
 
 
 def _bandwidth(matrix, order) -> int:
@@ -128,13 +134,13 @@ def _bandwidth(matrix, order) -> int:
 def preconditioner(model: MSSModel, prep: PreparedModel,
                    tissue_ratio: float = 0.0) -> Preconditioner:
     """The factorised ``L`` plus the connective tissue of ``tissue_ratio`` on its diagonal,
-    for ``prep``'s topology, cached on ``prep`` (its ``matrix_cache``: ``L`` does not depend on
+    for ``prep``'s topology, cached on ``prep`` (its ``factorisations``: ``L`` does not depend on
     the springs' rest lengths). Without tissue, a muscle whose free particles
     are not all joined to a fixed particle through springs would float: the solve refuses
     it."""
-    key = ("quasi-static preconditioner", float(tissue_ratio))
-    if key in prep.matrix_cache:
-        return prep.matrix_cache[key]
+    key = float(tissue_ratio)
+    if key in prep.factorisations:
+        return prep.factorisations[key]
     ends, _, stiffness, _ = model_springs(model, prep)
     n = int(prep.offsets[-1])
     diagonal = np.bincount(ends.ravel(), np.repeat(stiffness, 2), minlength=n)
@@ -175,7 +181,7 @@ def preconditioner(model: MSSModel, prep: PreparedModel,
         blocks.append((rows[order], np.ascontiguousarray(factor_.T).ravel(), width))
         widest = max(widest, width)
     result = Preconditioner(free, *_packed(blocks), stiffest, widest, tissue)
-    prep.matrix_cache[key] = result
+    prep.factorisations[key] = result
     return result
 
 
@@ -194,12 +200,11 @@ def _packed(blocks):
             starts([len(f) for _, f, _ in blocks])[:-1])
 
 
-def model_springs(model: MSSModel, prep: PreparedModel):
-    """:func:`spring_table`, cached on ``prep`` (the topology's)."""
-    key = "quasi-static springs"
-    if key not in prep.cache:
-        prep.cache[key] = spring_table(model, prep)
-    return prep.cache[key]
+def model_springs(model: MSSModel, prep: PreparedModel) -> SpringTable:
+    """:func:`spring_table`, cached on ``prep`` (its ``spring_table``)."""
+    if prep.spring_table is None:
+        prep.spring_table = spring_table(model, prep)
+    return prep.spring_table
 
 
 class InitialInverseHessian:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from muscle_mss.core.errors import MuscleMSSError
+from .errors import MuscleMSSError
 
 KINDS = ("int", "double", "bool", "enum")
 
@@ -106,7 +106,7 @@ class Property:
         Ranges are checked when the filter runs (not in the setter), so that ParaView reports
         them as a filter error with an empty output rather than a traceback from a setter. A
         NaN or an infinity is out of every range (a NaN compares false with both bounds, and
-        a property a method does not read, TimeStep under the quasi-static one, was taken).
+        a property a method does not read, the relaxation's time step under the quasi-static one, was taken).
         """
         if self.kind not in ("int", "double"):
             return None
