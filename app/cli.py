@@ -5,7 +5,9 @@ writes the deterministic demo thigh scene (``--region arm``: the elbow) and its 
 ``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE
 OUT`` does the same for a user's scene (see :mod:`muscle_mss.app.run_output` for the files
 written); ``muscle-mss study SCENE OUT`` writes the paper's experiments and the fibre-length
-study as ``OUT/report.html`` (:mod:`muscle_mss.app.study`).
+study as ``OUT/report.html`` (:mod:`muscle_mss.app.study`); ``muscle-mss cache info|clear``
+shows or empties the frame cache (:mod:`muscle_mss.app.frame_cache`), which ``--cache DIR|off``
+points elsewhere or turns off.
 """
 from __future__ import annotations
 
@@ -23,7 +25,8 @@ from muscle_mss.core.scene import Scene
 
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters.fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
-from .run_options import add_run_options, settings_from, writing_from
+from .run_options import (add_cache_option, add_run_options, cache_from, settings_from,
+                          writing_from)
 
 
 def scene_counts(scene: Scene) -> str:
@@ -238,6 +241,7 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
     pipeline, rows = motion_run.run_motion(scene_folder, out, settings, on_step=on_step,
                                            series_names=writing.series,
                                            compressor=writing.compressor, pipeline=pipeline)
+    cached = pipeline.frames.summary() if pipeline.frames is not None else None
     run_output.write_summary(out, rows)
     run_output.write_index(out, pipeline.times, series_names=writing.series)
     index = farthest_pose_index(scene.motion)
@@ -247,6 +251,8 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
                         title=f"convergence at t = {pipeline.times[index]:.3f} s")
     poses_picture(pipeline, index, os.path.join(out, run_output.POSES_PICTURE))
     print(summary_table(rows))
+    if cached:
+        print(cached)
     written = [*map(run_output.index_file, writing.series), run_output.SUMMARY_FILE,
                run_output.CONVERGENCE_PICTURE, run_output.POSES_PICTURE]
     print(f"wrote {out}: {', '.join(written)} in {wallclock.perf_counter() - start:.0f} s")
@@ -261,13 +267,15 @@ def compiling_meanwhile(settings: dict):
     return compiling_beside(stderr_notice, scope_for(settings))
 
 
-def prepared_pipeline(scene_folder: str, settings: dict, compiling: bool, time=None):
-    """``(pipeline, index)``: the pipeline of ``scene_folder`` with ``settings`` and the index
-    of its time point nearest ``time`` (None: the first), which, while the kernels compile
-    (``compiling``, as :func:`compiling_meanwhile` says), is prepared up to its solve
+def prepared_pipeline(scene_folder: str, settings: dict, compiling: bool, time=None,
+                      cache=None):
+    """``(pipeline, index)``: the pipeline of ``scene_folder`` with ``settings`` (and the
+    frame cache in the folder ``cache``, None: none) and the index of its time point nearest
+    ``time`` (None: the first), which, while the kernels compile (``compiling``, as
+    :func:`compiling_meanwhile` says), is prepared up to its solve
     (``motion_run.prepare_time_point``)."""
     from . import motion_run
-    pipeline = motion_run.build_pipeline(scene_folder, settings)
+    pipeline = motion_run.build_pipeline(scene_folder, settings, cache)
     index = 0 if time is None else time_point_index(pipeline.times, time)
     if compiling:
         motion_run.prepare_time_point(pipeline, index)
@@ -284,12 +292,13 @@ def compile_kernels(settings: dict | None = None) -> None:
 
 @contextlib.contextmanager
 def held_output_folder(out: str, overwrite: bool, study: bool = False, places=(), scene=None,
-                       check=None):
+                       check=None, resuming: bool = False):
     """:func:`run_output.output_folder` saying what it did: a lock taken over, an earlier run
     replaced; ``study``: for a study's files (:data:`~.study_report.STUDY_FILES`); ``places``:
     what the run places deeper (:func:`run_output.run_places`); ``scene``: the scene folder it
     reads (its files are never removed); ``check``: called with the folder held, before the
-    folder's check."""
+    folder's check; ``resuming``: the run in ``out`` is this one's, interrupted, and is run
+    again (its files are replaced without a word)."""
     from .run_output import output_folder
     from muscle_mss.filters.scene_io import scene_files
     from .study_report import STUDY_FILES
@@ -299,7 +308,7 @@ def held_output_folder(out: str, overwrite: bool, study: bool = False, places=()
                        **names) as (removed, note):
         if note:
             print(note, file=sys.stderr)
-        if removed:
+        if removed and not resuming:
             print(f"replacing the previous run in {out} ({len(removed)} files it wrote removed)")
         yield
 
@@ -308,7 +317,7 @@ def cmd_demo(args) -> int:
     from .demo_folder import check_demo_scene, record_demo_scene
     from .run_output import run_places
     from muscle_mss.filters.scene_io import scene_files
-    writing, settings = writing_from(args), settings_from(args)
+    writing, settings, cache = writing_from(args), settings_from(args), cache_from(args)
     start = wallclock.perf_counter()
     scene_folder = os.path.join(args.out, "scene")
     places = run_places(range(len(demo_region_motion(args.region).times)), writing.series)
@@ -321,42 +330,79 @@ def cmd_demo(args) -> int:
                                              os.path.join(scene_folder, "preview.png")])
             print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> "
                   f"{scene_folder}", flush=True)
-            pipeline, _ = prepared_pipeline(scene_folder, settings, compiling)
+            pipeline, _ = prepared_pipeline(scene_folder, settings, compiling, cache=cache)
         run_and_report(scene_folder, args.out, settings, scene, writing, pipeline, start)
     return 0
 
 
 def cmd_run(args) -> int:
-    from .run_output import run_places
+    from . import run_record
+    from .run_output import convergence_file, run_places
     from muscle_mss.filters.scene_io import load_scene
-    writing, settings = writing_from(args), settings_from(args)
+    writing, settings, cache = writing_from(args), settings_from(args), cache_from(args)
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
     times = list(scene.motion.times)
     indices = (range(len(times)) if args.time is None
                else [time_point_index(times, args.time)])
-    with held_output_folder(args.out, args.overwrite, places=run_places(indices, writing.series),
-                            scene=args.scene):
+    record = run_record.run_record(args.scene, settings, writing, args.time)
+    earlier = None if args.overwrite else run_record.read_record(args.out)
+    if earlier is not None:
+        differs = run_record.differences(earlier, record)
+        if differs:
+            raise MuscleMSSError(
+                f"output folder {args.out} holds a run with other inputs or options: "
+                f"{'; '.join(differs)}; pass --overwrite to replace it, or give the same "
+                "options to resume or complete it")
+        if run_record.is_complete(args.out, earlier):
+            print(f"{args.out}: complete already (the same scene, options and numerics); "
+                  "nothing to solve (--overwrite runs it again)")
+            return 0
+        written = sum(os.path.isfile(os.path.join(args.out, convergence_file(i)))
+                      for i in indices)
+        print(f"resuming the run in {args.out} (the same scene and options): {written} of "
+              f"{len(indices)} time points were written before it stopped; "
+              + ("the frame cache gives back those it solved" if cache else
+                 "with --cache off they are solved again"))
+
+    def unchanged():
+        if earlier is not None and run_record.read_record(args.out) != earlier:
+            raise MuscleMSSError(f"output folder {args.out}: another run changed it meanwhile; "
+                                 "run again")
+
+    with held_output_folder(args.out, args.overwrite or earlier is not None,
+                            places=run_places(indices, writing.series), scene=args.scene,
+                            check=unchanged, resuming=earlier is not None):
+        run_record.write_record(args.out, record)
         if args.time is None:
             start = wallclock.perf_counter()
             with compiling_meanwhile(settings) as compiling:
-                pipeline, _ = prepared_pipeline(args.scene, settings, compiling)
+                pipeline, _ = prepared_pipeline(args.scene, settings, compiling, cache=cache)
             run_and_report(args.scene, args.out, settings, scene, writing, pipeline, start)
         else:
-            run_time_point(args, settings, writing)
+            pipeline = run_time_point(args, settings, writing, cache)
+        frames = pipeline.frames
+        run_record.write_record(args.out, {
+            **record, "finished": True,
+            "frames": None if frames is None else {"loaded": frames.loaded,
+                                                   "solved": frames.solved}})
     return 0
 
 
-def run_time_point(args, settings, writing) -> None:
-    """``muscle-mss run --time T``: solve and write the time point nearest T."""
+def run_time_point(args, settings, writing, cache=None):
+    """``muscle-mss run --time T``: solve and write the time point nearest T; the
+    pipeline."""
     from . import motion_run, run_output
     with compiling_meanwhile(settings) as compiling:
-        pipeline, index = prepared_pipeline(args.scene, settings, compiling, args.time)
+        pipeline, index = prepared_pipeline(args.scene, settings, compiling, args.time, cache)
     result = motion_run.solve_time_point(pipeline, index)
     run_output.write_time_point(result, args.out, writing.series, writing.compressor)
     run_output.write_summary(args.out, result.rows)
     run_output.write_index(args.out, [result.time], [result.index], writing.series)
     print(summary_table(result.rows))
+    if pipeline.frames is not None:
+        print(pipeline.frames.summary())
+    return pipeline
 
 
 def cmd_study(args) -> int:
@@ -366,14 +412,15 @@ def cmd_study(args) -> int:
     print(f"{args.scene}: {scene_counts(scene)}")
     compile_kernels()
     with held_output_folder(args.out, args.overwrite, study=True, scene=args.scene):
-        path = study_into(args.scene, args.out, args.resolution, args.time)
+        path = study_into(args.scene, args.out, args.resolution, args.time, cache_from(args))
     print(f"wrote {path} (figures as PNG, their numbers as CSV beside it)")
     return 0
 
 
-def study_into(scene_folder: str, out: str, resolution=None, time=None) -> str:
+def study_into(scene_folder: str, out: str, resolution=None, time=None, cache=None) -> str:
     """Run :func:`~muscle_mss.app.study.run_study` with a progress bar and write its
-    report into ``out`` (held by the caller); the report's path."""
+    report into ``out`` (held by the caller); the report's path. ``cache``: the frame cache's
+    folder (None: every frame solved)."""
     from muscle_mss.filters.scene_io import load_scene
     from .study import run_study
     from .study_report import write_report
@@ -386,8 +433,27 @@ def study_into(scene_folder: str, out: str, resolution=None, time=None) -> str:
         bars.setdefault(label, ProgressBar(total, label)).update(done)
 
     study = run_study(scene_folder, resolution or DEFAULT_PARTICLES_PER_FIBRE, index, progress,
-                      asked_time=time)
+                      asked_time=time, cache=cache)
     return write_report(study, out)
+
+
+def cmd_cache(args) -> int:
+    """``muscle-mss cache info|clear``: the frame cache's folder, entries, size and bound, or
+    remove its entries."""
+    from .frame_cache import FrameCache, chosen_folder
+    folder = chosen_folder(args.cache)
+    if folder is None:
+        print("frame cache: off (--cache off or $MUSCLE_MSS_FRAME_CACHE=off)")
+        return 0
+    cache = FrameCache(folder)
+    if args.action == "clear":
+        count, size = cache.clear()
+        print(f"frame cache {folder}: removed {count} entries ({size / 2 ** 20:.1f} MiB)")
+        return 0
+    info = cache.info()
+    print(f"frame cache {folder}: {info['entries']} entries, {info['bytes'] / 2 ** 20:.1f} MiB "
+          f"of at most {info['bound'] / 2 ** 30:g} GiB (least recently used out)")
+    return 0
 
 
 def time_point_index(times, time: float) -> int:
@@ -444,7 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", help="output folder")
     p.add_argument("--time", type=float, help="only the time point nearest this time (s)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace the results of an earlier run in OUT (refused without it)")
+                   help="replace the results of an earlier run in OUT (refused without it; "
+                        "the same run again resumes or completes it)")
     add_run_options(p)
     p.set_defaults(func=cmd_run)
 
@@ -459,7 +526,14 @@ def build_parser() -> argparse.ArgumentParser:
                                                        f"{DEFAULT_PARTICLES_PER_FIBRE})")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier study in OUT (refused without it)")
+    add_cache_option(p)
     p.set_defaults(func=cmd_study)
+
+    p = sub.add_parser("cache", help="the frame cache: where it is, its entries and size "
+                                     "(info), or remove its entries (clear)")
+    p.add_argument("action", choices=("info", "clear"))
+    add_cache_option(p)
+    p.set_defaults(func=cmd_cache)
     return parser
 
 

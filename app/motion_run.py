@@ -51,9 +51,32 @@ class Pipeline:
     deformer: object
     probe: object
     times: list = field(default_factory=list)
+    frames: object = None
+    """The frame cache the solver reads and fills (a
+    :class:`~muscle_mss.app.frame_cache.SolverFrames`), or None."""
 
 
-def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
+class CachedCollisionSolver(MSSCollisionSolver):
+    """The MSS Collision Solver that takes a frame from the frame cache (``frames``, a
+    :class:`~muscle_mss.app.frame_cache.SolverFrames`) when it holds it and stores each frame
+    it solves: everything after the solve (the outputs, the bone depths, the warnings) runs as
+    for a solved frame, so its outputs are the solved frame's."""
+
+    frames = None
+
+    def _solve(self, model, bones, prepared):
+        time = self.requested_time()
+        frames = self.frames if time is not None else None
+        result = frames.load(time) if frames is not None else None
+        if result is None:
+            result = super()._solve(model, bones, prepared)
+            if frames is not None:
+                frames.save(time, result)
+        return result
+
+
+def build_pipeline(scene_folder, settings: dict | None = None,
+                   cache: str | None = None) -> Pipeline:
     """Readers for ``scene_folder`` and the six filters wired as in DESIGN §5.
 
     ``settings`` maps property names to values (the solver's from
@@ -62,7 +85,8 @@ def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
     (:func:`~muscle_mss.app.frame_cache.chosen_folder`), or None: every frame solved.
     """
     resampler, springs, pose = FibreResampler(), SpringBuilder(), RigidPoseTransform()
-    solver, deformer, probe = MSSCollisionSolver(), MVCSurfaceDeformer(), VolumeErrorProbe()
+    solver = CachedCollisionSolver() if cache else MSSCollisionSolver()
+    deformer, probe = MVCSurfaceDeformer(), VolumeErrorProbe()
     muscles, fibres, bones, motion = scene_readers(scene_folder)
     resampler.SetInputConnection(0, fibres.GetOutputPort())
     resampler.SetInputConnection(1, bones.GetOutputPort())
@@ -97,8 +121,12 @@ def build_pipeline(scene_folder, settings: dict | None = None) -> Pipeline:
         # no usable motion table: the pose filter's own error says why
         pose.Update()
         raise MuscleMSSError(f"{os.path.join(str(scene_folder), MOTION_FILE)} gave no time steps")
+    frames = None
+    if cache:
+        from .frame_cache import FrameCache, SolverFrames
+        frames = solver.frames = SolverFrames(FrameCache(cache), scene_folder, filters)
     return Pipeline(muscles, fibres, bones, motion, resampler, springs, pose, solver, deformer,
-                    probe, times)
+                    probe, times, frames)
 
 
 def update_at(algorithm, port: int, t: float):
@@ -258,7 +286,7 @@ def time_block(count: int, k: int, parts: int) -> range:
 
 
 def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
-               series_names=SERIES, compressor=DEFAULT_COMPRESSOR, pipeline=None):
+               series_names=SERIES, compressor=DEFAULT_COMPRESSOR, pipeline=None, cache=None):
     """Compute the time points of a scene's motion and write their files.
 
     ``part = (k, K)`` computes the k-th of K contiguous blocks of time points (MPI rank k of
@@ -268,13 +296,14 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
     :func:`~muscle_mss.app.run_output.write_time_point` writes, and how.
 
     ``pipeline``: one :func:`build_pipeline` built for ``scene_folder`` and ``settings``
-    already (its first time point prepared: :func:`prepare_time_point`), else a new one.
+    already (its first time point prepared: :func:`prepare_time_point`), else a new one
+    reading and filling the frame cache in the folder ``cache`` (None: none).
 
     ``on_step(result, done, total)`` is called after each time point (progress bars). Returns the
     pipeline and the summary rows in time-point order; the caller writes ``summary.csv`` and the
     ``.pvd`` index (:mod:`~muscle_mss.app.run_output`) once all time points exist.
     """
-    pipeline = pipeline or build_pipeline(scene_folder, settings)
+    pipeline = pipeline or build_pipeline(scene_folder, settings, cache)
     indices = time_block(len(pipeline.times), *part)
     os.makedirs(out, exist_ok=True)
     rows = []

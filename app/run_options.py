@@ -68,6 +68,23 @@ def add_run_options(p) -> None:
     p.add_argument("--compressor", choices=COMPRESSORS, default=DEFAULT_COMPRESSOR,
                    help=f"compressor of the series' binary data (default {DEFAULT_COMPRESSOR}: "
                         "fast)")
+    add_cache_option(p)
+
+
+def add_cache_option(p) -> None:
+    """``--cache DIR|off``: where solved frames are kept and looked up
+    (:mod:`muscle_mss.app.frame_cache`)."""
+    from .frame_cache import ENVIRONMENT, default_folder
+    p.add_argument("--cache", metavar="DIR|off",
+                   help="frame cache: load frames solved before with the same scene, "
+                        f"properties and code, store those solved now (default ${ENVIRONMENT} "
+                        f"or {default_folder()}); off: neither read nor write")
+
+
+def cache_from(args) -> str | None:
+    """The frame cache folder ``--cache`` chooses, or None when it is off."""
+    from .frame_cache import chosen_folder
+    return chosen_folder(getattr(args, "cache", None))
 
 
 def settings_from(args) -> dict:

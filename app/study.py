@@ -238,7 +238,7 @@ def _particles(particles) -> np.ndarray:
     return np.concatenate([V.points_of(block) for _, block in V.blocks(particles)])
 
 
-def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
+def _paper_solve(scene_folder, layout: str, resolution: int, index: int, cache=None):
     """The pipeline and the paper relaxation's solve of time point ``index`` with ``layout``
     at the solver's time step, or at half or a quarter of it where a muscle diverges (Delaunay's
     stiffer springs need 0.025 s): ``(pipeline, result, time step s)``."""
@@ -246,7 +246,7 @@ def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
         step = DEFAULT_TIME_STEP / 2 ** halvings
         pipeline = build_pipeline(scene_folder, {
             "ParticlesPerFibre": resolution, "Layout": layout, **by_name(time_step=step),
-            **PAPER_MODEL})
+            **PAPER_MODEL}, cache)
         try:
             return pipeline, solve_time_point(pipeline, index), step
         except MuscleMSSError:
@@ -254,11 +254,12 @@ def _paper_solve(scene_folder, layout: str, resolution: int, index: int):
                 raise
 
 
-def layout_result(scene_folder, layout: str, resolution: int, index: int) -> LayoutResult:
+def layout_result(scene_folder, layout: str, resolution: int, index: int,
+                  cache=None) -> LayoutResult:
     """Solve the pose ``index`` with ``layout`` by the paper relaxation (its defaults and the
     paper's model, :data:`PAPER_MODEL`, the time step halved where it diverges) and by the
     quasi-static method (the solver's defaults)."""
-    pipeline, paper, time_step = _paper_solve(scene_folder, layout, resolution, index)
+    pipeline, paper, time_step = _paper_solve(scene_folder, layout, resolution, index, cache)
     muscles = [row[A.MUSCLE] for row in paper.rows]
     displacement = _displacements(paper.convergence, muscles)
     below = np.flatnonzero((displacement < DEFAULT_DISPLACEMENT_THRESHOLD).all(axis=1))
@@ -269,9 +270,10 @@ def layout_result(scene_folder, layout: str, resolution: int, index: int) -> Lay
     for name, value in DEFAULT_MODEL.items():
         getattr(pipeline.solver, "Set" + name)(value)
     pipeline.solver.SetIterations(LAYOUT_QUASI_STATIC_CAP)
-    tick = wallclock.perf_counter()
     solved = solve_time_point(pipeline, index)
-    seconds = wallclock.perf_counter() - tick
+    # the solver's own seconds, as the paper relaxation's: a frame from the frame cache keeps
+    # the seconds of its solve
+    seconds = float(solved.convergence[A.SECONDS][-1])
     converged = bool(solved.rows[0][A.CONVERGED])
     return LayoutResult(
         layout, displacement, later_slope(displacement),
@@ -281,11 +283,11 @@ def layout_result(scene_folder, layout: str, resolution: int, index: int) -> Lay
         np.array([row[A.VOLUME_ERROR_PCT] for row in paper.rows]), particles, time_step)
 
 
-def motion_series(scene_folder, resolution: int, progress=None) -> MotionSeries:
+def motion_series(scene_folder, resolution: int, progress=None, cache=None) -> MotionSeries:
     """Every time point of the scene's motion through the six filters at their defaults (the
     default layout) and ``resolution`` particles per fibre; ``progress(done, total)``."""
     pipeline = build_pipeline(scene_folder, {"ParticlesPerFibre": resolution,
-                                             "Layout": DEFAULT_LAYOUT})
+                                             "Layout": DEFAULT_LAYOUT}, cache)
     times, fibres, paths, volume, phases, rows = [], [], [], [], [], []
     muscles = None
     for k in range(len(pipeline.times)):
@@ -315,11 +317,12 @@ def motion_series(scene_folder, resolution: int, progress=None) -> MotionSeries:
 
 
 def run_study(scene_folder, resolution: int, index: int | None = None,
-              progress=None, asked_time: float | None = None) -> Study:
+              progress=None, asked_time: float | None = None, cache=None) -> Study:
     """The whole study of the scene in ``scene_folder`` at ``resolution`` particles per fibre,
     its layouts at time point ``index`` (default the most flexed: the bones farthest from rest),
     the one nearest ``asked_time`` when that was asked (the report says so).
-    ``progress(label, done, total)`` after each step."""
+    ``progress(label, done, total)`` after each step; ``cache``: the frame cache's folder
+    (:func:`~muscle_mss.app.frame_cache.chosen_folder`; None: every frame solved)."""
     from muscle_mss.core.motion import farthest_pose_index
     from muscle_mss.filters.scene_io import load_scene
     start = wallclock.perf_counter()
@@ -328,10 +331,10 @@ def run_study(scene_folder, resolution: int, index: int | None = None,
     index = flexed if index is None else index
     say = progress or (lambda label, done, total: None)
     series = motion_series(scene_folder, resolution,
-                           lambda done, total: say("motion", done, total))
+                           lambda done, total: say("motion", done, total), cache)
     layouts = []
     for k, layout in enumerate(LAYOUTS):
-        layouts.append(layout_result(scene_folder, layout, resolution, index))
+        layouts.append(layout_result(scene_folder, layout, resolution, index, cache))
         say("layouts", k + 1, len(LAYOUTS))
     return Study(str(scene_folder), index, float(series.times[index]), resolution, layouts,
                  series, machine(), wallclock.perf_counter() - start, asked_time, flexed)

@@ -1,7 +1,8 @@
 """Run a whole motion in ParaView's Python, serially or spread over MPI ranks (DESIGN §7).
 
     pvpython -m muscle_mss.plugin.batch SCENE OUT [--resolution N] [--layout L] [--iterations K]
-        [--method M] [--tolerance MM] [--write SERIES] [--compressor C] [--overwrite]
+        [--method M] [--tolerance MM] [--write SERIES] [--compressor C] [--cache DIR|off]
+        [--overwrite]
     mpiexec -n K pvbatch --sym -m muscle_mss.plugin.batch SCENE OUT [...]
     pvpython -m muscle_mss.plugin.batch --study SCENE OUT [--time T] [--resolution N]
 
@@ -46,7 +47,7 @@ def _study(args, size) -> int:
     """``--study``: the report of :mod:`muscle_mss.app.study`, in this one process."""
     from muscle_mss.core.errors import MuscleMSSError
     from muscle_mss.app.cli import held_output_folder, study_into
-    from muscle_mss.app.run_options import study_ignored
+    from muscle_mss.app.run_options import cache_from, study_ignored
     ignored = study_ignored(args)
     problem = ("the study runs in one process: start it with pvpython, not under mpiexec"
                if size > 1 else f"{', '.join(ignored)} do not apply to --study (it runs "
@@ -55,7 +56,8 @@ def _study(args, size) -> int:
         if problem:
             raise MuscleMSSError(problem)
         with held_output_folder(args.out, args.overwrite, study=True):
-            path = study_into(args.scene, args.out, args.resolution, args.time)
+            path = study_into(args.scene, args.out, args.resolution, args.time,
+                              cache_from(args))
     except MuscleMSSError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
@@ -134,12 +136,16 @@ def _run(args, controller, rank, size, settings, writing) -> int:
     from muscle_mss.core.errors import MuscleMSSError
     from muscle_mss.filters import array_names as A
     from muscle_mss.app import motion_run, output_folder, run_output
+    from muscle_mss.app.run_options import cache_from
     failed = 0
     partial = f".summary.rank{rank}.csv"
     try:
         pipeline, rows = motion_run.run_motion(
             args.scene, args.out, settings,
-            part=(rank, size), series_names=writing.series, compressor=writing.compressor)
+            part=(rank, size), series_names=writing.series, compressor=writing.compressor,
+            cache=cache_from(args))
+        if pipeline.frames is not None:
+            print(f"rank {rank}: {pipeline.frames.summary()}")
         output_folder.claim(args.out, partial)
         run_output.write_csv(os.path.join(args.out, partial), run_output.SUMMARY_COLUMNS,
                              ([r[c] for c in run_output.SUMMARY_COLUMNS] for r in rows))

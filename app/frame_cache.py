@@ -1,0 +1,426 @@
+"""The frame cache: solved frames kept on disk, keyed by everything that determines them
+(DESIGN §6 "Frame cache").
+
+A frame (what the MSS Collision Solver computes at one time) is a pure function of the scene,
+every property of the six filters and the time, so it is stored under a digest of exactly those
+and of the numerics' version, and any run that asks for the same frame loads it instead of
+solving it again (``muscle-mss run`` / ``demo`` / ``study``, the batch, a resumed run).
+
+* **Key** (:func:`frame_key`): the cache format; the package version and a digest of the
+  ``.py`` files of ``core/`` and ``filters/`` (the numerics); a digest of the bytes of every
+  scene file the run reads (:func:`scene_digest`); every property of the six filters with its
+  effective value, defaults included (:func:`filter_properties`); the time (its exact float).
+  Not the Python, Numba or NumPy version: the venv and ParaView's Python share frames (their
+  results agree to rounding, not bitwise); each entry records the runtime that solved it.
+* **Entry** (one file ``<key digest>.frame``): a magic line, the length of a JSON header, the
+  header (the full key, the SHA-256 and length of the payload, the solver result's scalars and
+  class, the runtime), then the payload: the result's arrays as an uncompressed ``.npz``. An
+  entry is loaded only when its magic, its key (compared whole, not only its digest), its
+  length and its checksum are right; else it is reported, removed and the frame solved again.
+* **Writes** go to a temporary file in the cache folder, are flushed to disk and renamed over
+  the entry (``os.replace``): a reader sees no entry or a whole one, and two processes writing
+  the same frame both write the same bytes, the last rename winning.
+* **Bound**: the folder is kept under :data:`DEFAULT_BOUND` bytes (or
+  :data:`BOUND_ENVIRONMENT`'s), the least recently used entries (loading touches an entry)
+  removed after each write.
+* **Where**: ``--cache DIR`` or ``--cache off`` (nothing read or written), else the
+  environment variable :data:`ENVIRONMENT` (a folder or ``off``; the test suite turns it off),
+  else ``$XDG_CACHE_HOME/muscle-mss/frames`` (``~/.cache/muscle-mss/frames``).
+
+Not cached: a solve whose answer depends on more than its key (the solver's ``WarmStart``, which
+starts from the frame solved before; termination ``time budget``, which stops on the clock).
+Nothing here imports VTK.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import importlib
+import io
+import json
+import os
+import struct
+import sys
+import tempfile
+import time as wallclock
+import zipfile
+
+import numpy as np
+
+FORMAT = 1
+"""The entry format and key layout; a change starts new keys."""
+MAGIC = b"muscle-mss frame\n"
+SUFFIX = ".frame"
+ENVIRONMENT = "MUSCLE_MSS_FRAME_CACHE"
+BOUND_ENVIRONMENT = "MUSCLE_MSS_FRAME_CACHE_BOUND"
+DEFAULT_BOUND = 2 * 1024 ** 3
+"""Bytes the cache folder holds at most (2 GiB: the demo thigh's walk at the defaults is 21
+frames of 0.8 MiB, 17 MiB, so some 120 walks; benchmarks/results/review.md)."""
+OFF = "off"
+STALE_TEMPORARY_SECONDS = 3600.0
+"""A temporary file older than this was left by a writer that was killed: removed."""
+_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
+
+
+class DamagedEntry(Exception):
+    """An entry that cannot be loaded; the text says why."""
+
+
+# ---- where --------------------------------------------------------------------------------
+
+def default_folder() -> str:
+    """``$XDG_CACHE_HOME/muscle-mss/frames``, else ``~/.cache/muscle-mss/frames``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "muscle-mss", "frames")
+
+
+def chosen_folder(option: str | None = None) -> str | None:
+    """The cache folder ``--cache`` (``option``: a folder, ``off`` or None: not given) chooses:
+    the option, else :data:`ENVIRONMENT`, else :func:`default_folder`; None when off."""
+    for chosen in (option, os.environ.get(ENVIRONMENT)):
+        if chosen is not None and chosen.strip():
+            return None if chosen.strip().lower() == OFF else os.path.abspath(chosen)
+    return default_folder()
+
+
+def bound_bytes() -> int:
+    """:data:`BOUND_ENVIRONMENT` (bytes) when set, else :data:`DEFAULT_BOUND`."""
+    with contextlib.suppress(ValueError, TypeError, KeyError):
+        return max(0, int(os.environ[BOUND_ENVIRONMENT]))
+    return DEFAULT_BOUND
+
+
+# ---- the key --------------------------------------------------------------------------------
+
+def package_version() -> str:
+    """The version in the checkout's ``pyproject.toml``, else the installed distribution's."""
+    with contextlib.suppress(OSError):
+        with open(os.path.join(_PACKAGE_ROOT, "pyproject.toml")) as f:
+            for line in f:
+                if line.startswith("version"):
+                    return line.split("=", 1)[1].strip().strip('"')
+    with contextlib.suppress(Exception):
+        from importlib.metadata import version
+        return version("muscle-mss")
+    return "unknown"
+
+
+_numerics = {}
+
+
+def numerics_version() -> dict:
+    """The package version and a digest of the sources that compute a frame (every ``.py``
+    under ``core/`` and ``filters/``), read once per process."""
+    if not _numerics:
+        digest = hashlib.sha256()
+        for part in ("core", "filters"):
+            top = os.path.join(_PACKAGE_ROOT, part)
+            for root, dirs, files in os.walk(top):
+                dirs[:] = sorted(d for d in dirs if not d.startswith((".", "__")))
+                for name in sorted(f for f in files if f.endswith(".py")):
+                    path = os.path.join(root, name)
+                    relative = os.path.relpath(path, _PACKAGE_ROOT).replace(os.sep, "/")
+                    with open(path, "rb") as f:
+                        data = f.read()
+                    digest.update(f"{relative}\0{len(data)}\0".encode() + data)
+        _numerics.update(package=package_version(), sources=digest.hexdigest())
+    return dict(_numerics)
+
+
+def scene_digest(folder) -> str:
+    """A digest of the bytes of every file a run reads from the scene folder ``folder`` (the
+    three ``.vtm`` files, their block files, the motion table), with their relative paths."""
+    from muscle_mss.filters.scene_io import scene_files
+    digest = hashlib.sha256()
+    for path in sorted(scene_files(str(folder))):
+        with open(path, "rb") as f:
+            data = f.read()
+        relative = os.path.relpath(path, folder).replace(os.sep, "/")
+        digest.update(f"{relative}\0{len(data)}\0".encode() + data)
+    return digest.hexdigest()
+
+
+def filter_properties(filters) -> dict:
+    """``{filter class: {property: value}}``: every property of ``filters`` (the six, in
+    pipeline order) with its effective value, an enum as its choice's text, a number as
+    stored (a float's repr is exact)."""
+    table = {}
+    for f in filters:
+        values = {}
+        for prop in f.PROPERTIES:
+            value = f.choice(prop.name) if prop.kind == "enum" else f.value(prop.name)
+            values[prop.name] = value.item() if isinstance(value, np.generic) else value
+        table[type(f).__name__] = values
+    return table
+
+
+def frame_key(scene: str, filters, time: float) -> dict:
+    """The key of the frame at ``time`` of the scene whose :func:`scene_digest` is ``scene``
+    through ``filters`` (the six filters, their properties as they are now)."""
+    return {"format": FORMAT, "numerics": numerics_version(), "scene": scene,
+            "properties": filter_properties(filters), "time": float(time).hex()}
+
+
+def key_digest(key: dict) -> str:
+    """The SHA-256 of the key's canonical JSON: the entry's file name."""
+    return hashlib.sha256(_canonical(key)).hexdigest()
+
+
+def _canonical(value) -> bytes:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=True).encode()
+
+
+# ---- entries -------------------------------------------------------------------------------
+
+def result_parts(result) -> tuple:
+    """``(arrays, scalars)`` of a solver result (a :class:`~muscle_mss.core.model.SolveResult`
+    dataclass): its arrays and NumPy scalars (as 0-d arrays, keeping their dtype) for the
+    payload, the rest (text, Python numbers, dicts, None) and its class for the header."""
+    arrays, scalars = {}, {"__class__": f"{type(result).__module__}:{type(result).__qualname__}"}
+    for f in dataclasses.fields(result):
+        value = getattr(result, f.name)
+        if isinstance(value, (np.ndarray, np.generic)):
+            arrays[f.name] = np.asarray(value)
+        elif isinstance(value, dict):
+            scalars[f.name] = {k: v.item() if isinstance(v, np.generic) else v
+                               for k, v in value.items()}
+        else:
+            scalars[f.name] = value
+    return arrays, scalars
+
+
+def result_from_parts(arrays: dict, scalars: dict):
+    """The solver result :func:`result_parts` took apart."""
+    module, _, name = scalars["__class__"].partition(":")
+    if not module.startswith("muscle_mss.core."):
+        raise DamagedEntry(f"names the class {scalars['__class__']}, not a solver result")
+    cls = getattr(importlib.import_module(module), name)
+    values = {k: v for k, v in scalars.items() if k != "__class__"}
+    for k, v in arrays.items():
+        values[k] = v[()] if v.ndim == 0 else v
+    return cls(**values)
+
+
+def encode_entry(key: dict, arrays: dict, scalars: dict) -> bytes:
+    """An entry's bytes: :data:`MAGIC`, the header's length (8 bytes, little endian), the JSON
+    header (key, payload length and SHA-256, scalars, runtime, when), the ``.npz`` payload."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    payload = buffer.getvalue()
+    from muscle_mss.core.kernel_cache import runtime_tag
+    header = _canonical({"key": key, "payload_bytes": len(payload),
+                         "payload_sha256": hashlib.sha256(payload).hexdigest(),
+                         "scalars": scalars, "runtime": runtime_tag(),
+                         "written": wallclock.strftime("%Y-%m-%d %H:%M:%S")})
+    return MAGIC + struct.pack("<Q", len(header)) + header + payload
+
+
+def decode_entry(data: bytes, key: dict) -> tuple:
+    """``(arrays, scalars)`` of an entry's bytes, checked: :class:`DamagedEntry` saying why
+    when the magic, the header, the key, the length or the checksum is wrong."""
+    if not data.startswith(MAGIC):
+        raise DamagedEntry("not a frame cache entry (its first bytes)" if data
+                           else "empty file")
+    start = len(MAGIC) + 8
+    if len(data) < start:
+        raise DamagedEntry("truncated in its header")
+    (length,) = struct.unpack("<Q", data[len(MAGIC):start])
+    try:
+        header = json.loads(data[start:start + length])
+    except ValueError:
+        raise DamagedEntry("truncated or corrupt header") from None
+    if _canonical(header.get("key")) != _canonical(key):
+        raise DamagedEntry("its key is not the frame's (another frame under this name)")
+    payload = data[start + length:]
+    if len(payload) != header.get("payload_bytes"):
+        raise DamagedEntry(f"truncated: {len(payload)} of {header.get('payload_bytes')} "
+                           "payload bytes")
+    if hashlib.sha256(payload).hexdigest() != header.get("payload_sha256"):
+        raise DamagedEntry("checksum mismatch")
+    try:
+        with np.load(io.BytesIO(payload), allow_pickle=False) as stored:
+            arrays = {name: stored[name] for name in stored.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as err:
+        raise DamagedEntry(f"unreadable arrays ({err})") from None
+    return arrays, header["scalars"]
+
+
+class FrameCache:
+    """The entries in one folder: :meth:`load`, :meth:`save`, :meth:`info`, :meth:`clear`.
+    ``warn(text)`` reports a damaged entry (default: stderr); ``bound``: bytes kept at most."""
+
+    def __init__(self, folder: str, bound: int | None = None, warn=None):
+        self.folder = folder
+        self.bound = bound_bytes() if bound is None else bound
+        self.warn = warn or (lambda text: print(text, file=sys.stderr, flush=True))
+        self.damaged = 0
+
+    def path(self, key: dict) -> str:
+        return os.path.join(self.folder, key_digest(key) + SUFFIX)
+
+    def load(self, key: dict):
+        """``(arrays, scalars)`` stored under ``key``, or None: no entry, or a damaged one
+        (reported, removed: the caller solves the frame and saves it again)."""
+        path = self.path(key)
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+        except OSError:
+            return None
+        try:
+            parts = decode_entry(data, key)
+        except DamagedEntry as err:
+            self.damaged += 1
+            self.warn(f"warning: frame cache entry {path} is damaged ({err}); solving the "
+                      "frame again")
+            with contextlib.suppress(OSError):
+                os.remove(path)
+            return None
+        with contextlib.suppress(OSError):
+            os.utime(path)                          # recently used
+        return parts
+
+    def save(self, key: dict, arrays: dict, scalars: dict) -> bool:
+        """Store an entry under ``key`` atomically (temporary file, fsync, rename), then keep
+        the folder under the bound; False (and a warning) when the folder cannot be written."""
+        data = encode_entry(key, arrays, scalars)
+        staged = None
+        try:
+            os.makedirs(self.folder, exist_ok=True)
+            handle, staged = tempfile.mkstemp(dir=self.folder, prefix=".writing-")
+            with os.fdopen(handle, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(staged, self.path(key))
+        except OSError as err:
+            if staged is not None:
+                with contextlib.suppress(OSError):
+                    os.remove(staged)
+            self.warn(f"warning: frame cache {self.folder} cannot be written "
+                      f"({err.strerror or err}); the frame is not kept")
+            return False
+        self.evict()
+        return True
+
+    def entries(self) -> list:
+        """``(last used, bytes, path)`` of every entry, least recently used first."""
+        found = []
+        with contextlib.suppress(FileNotFoundError):
+            for entry in os.scandir(self.folder):
+                if entry.name.endswith(SUFFIX) and not entry.name.startswith("."):
+                    with contextlib.suppress(FileNotFoundError):
+                        st = entry.stat()
+                        found.append((st.st_mtime, st.st_size, entry.path))
+        return sorted(found)
+
+    def evict(self) -> int:
+        """Remove the least recently used entries until the folder holds at most the bound,
+        and temporary files a killed writer left; the number of entries removed."""
+        entries = self.entries()
+        total, removed = sum(size for _, size, _ in entries), 0
+        for _, size, path in entries:
+            if total <= self.bound:
+                break
+            with contextlib.suppress(FileNotFoundError):   # another process removed it
+                os.remove(path)
+                removed += 1
+            total -= size
+        now = wallclock.time()
+        with contextlib.suppress(FileNotFoundError):
+            for entry in os.scandir(self.folder):
+                if entry.name.startswith(".writing-"):
+                    with contextlib.suppress(FileNotFoundError):
+                        if now - entry.stat().st_mtime > STALE_TEMPORARY_SECONDS:
+                            os.remove(entry.path)
+        return removed
+
+    def info(self) -> dict:
+        """``entries``, ``bytes``, ``bound`` and ``folder``."""
+        entries = self.entries()
+        return {"folder": self.folder, "entries": len(entries),
+                "bytes": sum(size for _, size, _ in entries), "bound": self.bound}
+
+    def clear(self) -> tuple:
+        """Remove every entry (and temporary file); ``(entries, bytes)`` removed."""
+        count = size = 0
+        with contextlib.suppress(FileNotFoundError):
+            for entry in os.scandir(self.folder):
+                if entry.name.endswith(SUFFIX) or entry.name.startswith(".writing-"):
+                    with contextlib.suppress(FileNotFoundError):
+                        size += entry.stat().st_size
+                        os.remove(entry.path)
+                        count += entry.name.endswith(SUFFIX)
+        return count, size
+
+
+class SolverFrames:
+    """A :class:`FrameCache` bound to a pipeline: what the MSS Collision Solver asks at each
+    solve (:meth:`load`, :meth:`save` by time), keyed by the scene's files (hashed once) and
+    the six ``filters``' properties as they are at that moment (a study changes the solver's
+    between solves). Counts ``loaded``, ``solved`` (saved), ``damaged`` and ``uncached``
+    (solves whose answer depends on more than the key)."""
+
+    def __init__(self, cache: FrameCache, scene_folder, filters):
+        self.cache = cache
+        self.scene = scene_digest(scene_folder)
+        self.filters = tuple(filters)
+        self.loaded = self.solved = self.uncached = 0
+        self._told = False
+
+    def cacheable(self) -> bool:
+        """Whether the solver's answer is a function of the key: not with ``WarmStart`` (it
+        starts from the frame solved before) nor termination ``time budget`` (the clock)."""
+        from muscle_mss.core.settings import TERMINATION_BUDGET
+        solver = next(f for f in self.filters
+                      if any(p.name == "WarmStart" for p in f.PROPERTIES))
+        warm = bool(solver.value("WarmStart"))
+        budget = solver.choice("Termination") == TERMINATION_BUDGET
+        if (warm or budget) and not self._told:
+            self._told = True
+            self.cache.warn("note: the frame cache is not used: "
+                            + ("WarmStart makes a frame depend on the frame solved before it"
+                               if warm else "termination 'time budget' stops on the clock")
+                            + ", so a stored frame would not be the one solved now")
+        return not (warm or budget)
+
+    def key(self, time: float) -> dict:
+        return frame_key(self.scene, self.filters, time)
+
+    def load(self, time: float):
+        """The solver result stored for ``time``, or None (then the solver solves)."""
+        if not self.cacheable():
+            self.uncached += 1
+            return None
+        parts = self.cache.load(self.key(time))
+        if parts is None:
+            return None
+        try:
+            result = result_from_parts(*parts)
+        except (DamagedEntry, TypeError, ValueError, KeyError, AttributeError,
+                ImportError) as err:
+            self.cache.warn(f"warning: frame cache entry {self.cache.path(self.key(time))} "
+                            f"does not hold a solver result ({err}); solving the frame again")
+            return None
+        self.loaded += 1
+        return result
+
+    def save(self, time: float, result) -> None:
+        """Store the solver ``result`` of ``time`` (nothing when it is not cacheable)."""
+        self.solved += 1
+        if self.cacheable():
+            self.cache.save(self.key(time), *result_parts(result))
+
+    def summary(self) -> str:
+        """``frame cache: 21 of 21 frames loaded, 0 solved (DIR)``."""
+        total = self.loaded + self.solved
+        return (f"frame cache: {self.loaded} of {total} frames loaded, {self.solved} solved "
+                f"({self.cache.folder})")
+
+
+def frames_for(option, scene_folder, filters):
+    """A :class:`SolverFrames` for the cache ``option`` chooses (:func:`chosen_folder`), or
+    None when it is off."""
+    folder = chosen_folder(option)
+    return None if folder is None else SolverFrames(FrameCache(folder), scene_folder, filters)

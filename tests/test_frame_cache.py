@@ -1,0 +1,260 @@
+"""The frame cache (muscle_mss.app.frame_cache) and the resumed run (muscle_mss.app.run_record):
+every input of a frame is in its key, the same inputs hit across processes with the same
+outputs, a damaged entry is solved again, concurrent writers, ``--cache off``, resume."""
+import csv
+import importlib
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from muscle_mss.app import frame_cache as F
+from muscle_mss.filters import EXPORTS, FILTER_NAMES
+
+RUN = ["--iterations", "20"]
+
+
+def filter_instances():
+    return [getattr(importlib.import_module(f"muscle_mss.filters.{EXPORTS[name]}"), name)()
+            for name in FILTER_NAMES]
+
+
+def all_properties():
+    return [(name, prop) for name, f in zip(FILTER_NAMES, filter_instances())
+            for prop in f.PROPERTIES]
+
+
+def other_value(prop, value):
+    """A valid value of ``prop`` other than ``value`` (a choice's index for an enum)."""
+    if prop.kind == "bool":
+        return not value
+    if prop.kind == "enum":
+        return prop.choices[(value + 1) % len(prop.choices)]
+    low = -np.inf if prop.minimum is None else prop.minimum
+    high = np.inf if prop.maximum is None else prop.maximum
+    step = 1 if prop.kind == "int" else 0.5 * abs(value) + 0.25
+    return next(v for v in (value + step, value - step, (value + low) / 2)
+                if low <= v <= high and v != value)
+
+
+@pytest.mark.parametrize("filter_name,prop", all_properties(),
+                         ids=[f"{n}.{p.name}" for n, p in all_properties()])
+def test_changing_any_property_of_any_filter_changes_the_key(filter_name, prop):
+    filters = filter_instances()
+    before = F.frame_key("scene", filters, 0.5)
+    owner = filters[FILTER_NAMES.index(filter_name)]
+    getattr(owner, "Set" + prop.name)(other_value(prop, owner.value(prop.name)))
+    after = F.frame_key("scene", filters, 0.5)
+    assert F.key_digest(after) != F.key_digest(before)
+    assert F.key_digest(F.frame_key("scene", filter_instances(), 0.5)) == F.key_digest(before)
+
+
+def test_the_time_and_the_numerics_are_in_the_key():
+    filters = filter_instances()
+    key = F.frame_key("scene", filters, 0.5)
+    assert F.key_digest(F.frame_key("scene", filters, np.nextafter(0.5, 1))) != F.key_digest(key)
+    assert F.key_digest({**key, "numerics": {**key["numerics"], "sources": "0"}}) \
+        != F.key_digest(key)
+
+
+def test_one_byte_of_any_scene_file_changes_the_key(small_scene_dir, tmp_path):
+    from muscle_mss.filters.scene_io import scene_files
+    reference = F.scene_digest(small_scene_dir)
+    files = [os.path.relpath(p, small_scene_dir) for p in scene_files(str(small_scene_dir))]
+    assert len(files) >= 4 + 3      # the three .vtm files, their blocks and the motion table
+    for relative in files:
+        copy = tmp_path / relative.replace(os.sep, "_")
+        shutil.copytree(small_scene_dir, copy)
+        path = copy / relative
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0x01
+        path.write_bytes(bytes(data))
+        assert F.scene_digest(copy) != reference, relative
+    shutil.copytree(small_scene_dir, tmp_path / "same")
+    assert F.scene_digest(tmp_path / "same") == reference      # the path is not in the key
+
+
+def test_an_entry_round_trips_and_a_wrong_key_or_a_flipped_byte_is_refused(tmp_path):
+    warnings = []
+    cache = F.FrameCache(str(tmp_path), warn=warnings.append)
+    key = {"frame": 1}
+    arrays = {"positions": np.arange(12.0).reshape(4, 3), "flag": np.asarray(np.True_)}
+    assert cache.save(key, arrays, {"method": "quasi-static", "passes": 3})
+    loaded, scalars = cache.load(key)
+    assert scalars["passes"] == 3 and loaded["flag"].dtype == np.bool_
+    np.testing.assert_array_equal(loaded["positions"], arrays["positions"])
+    path = cache.path(key)
+    data = bytearray(open(path, "rb").read())
+    with pytest.raises(F.DamagedEntry, match="not the frame's"):
+        F.decode_entry(bytes(data), {"frame": 2})
+    data[-10] ^= 0x01
+    with pytest.raises(F.DamagedEntry, match="checksum"):
+        F.decode_entry(bytes(data), key)
+    open(path, "wb").write(bytes(data))
+    assert cache.load(key) is None and not os.path.exists(path)
+    assert warnings and warnings[0].startswith("warning: frame cache entry ")
+
+
+def test_the_bound_keeps_the_most_recently_used_entries(tmp_path):
+    cache = F.FrameCache(str(tmp_path), bound=10 ** 9)
+    payload = {"a": np.zeros(1000)}
+    cache.save({"k": 0}, payload, {})
+    os.utime(cache.path({"k": 0}), (0, 0))
+    size = cache.info()["bytes"]
+    cache.bound = int(2.5 * size)
+    for k in range(1, 4):
+        cache.save({"k": k}, payload, {})
+        os.utime(cache.path({"k": k}), (k, k))        # k used at second k: 1 the oldest
+    cache.save({"k": 9}, payload, {})
+    kept = {os.path.basename(p) for _, _, p in cache.entries()}
+    assert kept == {os.path.basename(cache.path({"k": k})) for k in (3, 9)}
+
+
+WRITER = textwrap.dedent("""
+    import sys, numpy as np
+    from muscle_mss.app.frame_cache import FrameCache
+    cache = FrameCache(sys.argv[1])
+    arrays = {"positions": np.linspace(0.0, 1.0, 300000)}
+    for _ in range(20):
+        assert cache.save({"frame": "same"}, arrays, {"method": "m"})
+""")
+
+
+def test_two_writers_at_once_leave_one_valid_entry(tmp_path):
+    writers = [subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path)])
+               for _ in range(2)]
+    assert [w.wait(timeout=120) for w in writers] == [0, 0]
+    assert sorted(os.listdir(tmp_path)) == [os.path.basename(
+        F.FrameCache(str(tmp_path)).path({"frame": "same"}))]
+    arrays, scalars = F.FrameCache(str(tmp_path)).load({"frame": "same"})
+    np.testing.assert_array_equal(arrays["positions"], np.linspace(0.0, 1.0, 300000))
+
+
+# ---- whole runs --------------------------------------------------------------------------------
+
+def assert_same_outputs(a, b, solved_again=True):
+    """Every file the runs wrote is bitwise the same, but the ``seconds`` columns (of
+    summary.csv: the wall seconds this run spent on a time point; of a convergence table: the
+    solve's clock: compared too unless ``solved_again``, frames of the second run solved anew)
+    and the folder's own hidden files."""
+    def files(root):
+        return sorted(os.path.relpath(os.path.join(d, f), root) for d, _, names in os.walk(root)
+                      for f in names if not f.startswith("."))
+    assert files(a) == files(b)
+    for relative in files(a):
+        if relative == "summary.csv" or solved_again and relative.endswith(".csv"):
+            rows = [list(csv.DictReader(open(os.path.join(r, relative)))) for r in (a, b)]
+            assert [{k: v for k, v in r.items() if k != "seconds"} for r in rows[0]] == \
+                [{k: v for k, v in r.items() if k != "seconds"} for r in rows[1]]
+        else:
+            with open(os.path.join(a, relative), "rb") as fa, \
+                    open(os.path.join(b, relative), "rb") as fb:
+                assert fa.read() == fb.read(), relative
+
+
+@pytest.fixture(scope="module")
+def first_run(small_scene_dir, tmp_path_factory):
+    """A whole run of the small scene filling a fresh cache: ``(out, cache, stdout)``."""
+    pytest.importorskip("pyvista")          # the run's pictures
+    from muscle_mss.app.cli import main
+    root = tmp_path_factory.mktemp("cached")
+    out, cache = root / "out", root / "cache"
+    import contextlib
+    import io
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        assert main(["run", str(small_scene_dir), str(out), *RUN, "--cache", str(cache)]) == 0
+    return out, cache, text.getvalue()
+
+
+def test_the_same_run_in_another_process_loads_every_frame(first_run, small_scene_dir,
+                                                           tmp_path):
+    out, cache, text = first_run
+    assert "frame cache: 0 of 21 frames loaded, 21 solved" in text
+    entries = len(F.FrameCache(str(cache)).entries())
+    assert entries == 21
+    second = subprocess.run(
+        [sys.executable, "-m", "muscle_mss.app.cli", "run", str(small_scene_dir),
+         str(tmp_path / "out"), *RUN, "--cache", str(cache)],
+        capture_output=True, text=True, timeout=600)
+    assert second.returncode == 0, second.stderr
+    assert "frame cache: 21 of 21 frames loaded, 0 solved" in second.stdout
+    assert len(F.FrameCache(str(cache)).entries()) == entries
+    assert_same_outputs(out, tmp_path / "out", solved_again=False)
+
+
+def test_a_damaged_entry_is_reported_and_solved_again(first_run, small_scene_dir, tmp_path,
+                                                      capsys):
+    from muscle_mss.app.cli import main
+    out, cache, _ = first_run
+    copy = tmp_path / "cache"
+    shutil.copytree(cache, copy)
+    victim = F.FrameCache(str(copy)).entries()[0][2]
+    size = os.path.getsize(victim)
+    with open(victim, "r+b") as f:
+        f.truncate(size // 2)
+    assert main(["run", str(small_scene_dir), str(tmp_path / "out"), *RUN,
+                 "--cache", str(copy)]) == 0
+    captured = capsys.readouterr()
+    assert f"warning: frame cache entry {victim} is damaged (truncated" in captured.err
+    assert "frame cache: 20 of 21 frames loaded, 1 solved" in captured.out
+    data = open(victim, "rb").read()            # written again, whole
+    start = len(F.MAGIC) + 8
+    key = json.loads(data[start:start + struct.unpack("<Q", data[len(F.MAGIC):start])[0]])["key"]
+    F.decode_entry(data, key)
+    assert os.path.basename(victim) == F.key_digest(key) + F.SUFFIX
+    assert_same_outputs(out, tmp_path / "out")
+
+
+def test_cache_off_writes_nothing(small_scene_dir, tmp_path, monkeypatch, capsys):
+    pytest.importorskip("pyvista")
+    from muscle_mss.app.cli import main
+    monkeypatch.delenv(F.ENVIRONMENT, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    frames = tmp_path / "xdg" / "muscle-mss" / "frames"
+    assert main(["run", str(small_scene_dir), str(tmp_path / "off"), *RUN, "--time", "0.5",
+                 "--cache", "off"]) == 0
+    assert "frame cache" not in capsys.readouterr().out and not frames.exists()
+    # without --cache the user's cache folder is used: the check above can fail
+    assert main(["run", str(small_scene_dir), str(tmp_path / "on"), *RUN, "--time", "0.5"]) == 0
+    assert len(F.FrameCache(str(frames)).entries()) == 1
+    assert main(["cache", "info"]) == 0
+    assert f"frame cache {frames}: 1 entries" in capsys.readouterr().out
+    assert main(["cache", "clear"]) == 0 and not F.FrameCache(str(frames)).entries()
+
+
+def test_an_interrupted_run_resumes_to_the_uninterrupted_outputs(first_run, small_scene_dir,
+                                                                 tmp_path, monkeypatch, capsys):
+    from muscle_mss.app import cli
+    out, _, _ = first_run
+    resumed, cache = tmp_path / "out", str(tmp_path / "cache")
+    update = cli.ProgressBar.update
+
+    def interrupt_after_five(self, done, note=""):
+        update(self, done, note)
+        if done == 5:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.ProgressBar, "update", interrupt_after_five)
+    assert cli.main(["run", str(small_scene_dir), str(resumed), *RUN, "--cache", cache]) == 130
+    monkeypatch.setattr(cli.ProgressBar, "update", update)
+    assert not (resumed / "summary.csv").exists()
+    capsys.readouterr()
+    # other options are refused, naming what differs
+    assert cli.main(["run", str(small_scene_dir), str(resumed), "--iterations", "25",
+                     "--cache", cache]) == 2
+    assert "--iterations 20 there, 25 now" in capsys.readouterr().err
+    assert cli.main(["run", str(small_scene_dir), str(resumed), *RUN, "--cache", cache]) == 0
+    text = capsys.readouterr().out
+    assert f"resuming the run in {resumed} (the same scene and options): 5 of 21 time " \
+           "points were written" in text
+    assert "frame cache: 5 of 21 frames loaded, 16 solved" in text
+    assert_same_outputs(out, resumed)
+    assert cli.main(["run", str(small_scene_dir), str(resumed), *RUN, "--cache", cache]) == 0
+    assert f"{resumed}: complete already" in capsys.readouterr().out
