@@ -32,11 +32,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .errors import MuscleMSSError
 from .model import REFERENCE_PARTICLES
 from .mss import along_part
 
-__all__ = ["REFERENCE_PARTICLES", "add_tissue_energy", "check_along", "tissue_share",
+__all__ = ["REFERENCE_PARTICLES", "add_tissue_energy", "tissue_share",
            "tissue_stiffness", "tissue_targets"]
 
 

@@ -123,7 +123,10 @@ class SolveResult:
     the tolerance unless the passes ran out); ``method`` the method that solved it;
     ``tissue_share`` (M,) % the connective tissue's force over the springs' per muscle
     (:func:`~muscle_mss.core.connective_tissue.tissue_share`; None: not measured);
-    ``bone_contact`` the :attr:`Bones.contact` solved against.
+    ``bone_contact`` the :attr:`Bones.contact` solved against; ``converged`` whether the
+    method met its own criterion (the relaxation's displacement threshold, the quasi-static
+    tolerance); ``residual`` (K,) mm, for a method that measures one, the largest particle move
+    of each iteration's step (None: not measured).
     """
 
     positions: np.ndarray
@@ -142,6 +145,8 @@ class SolveResult:
     method: str = METHOD_RELAXATION
     tissue_share: np.ndarray | None = None
     bone_contact: str = "none"
+    converged: bool = False
+    residual: np.ndarray | None = None
 
     @property
     def iterations(self) -> int:

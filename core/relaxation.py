@@ -331,4 +331,4 @@ def _result(prep, settings, mss, spheres, contacts, box, lists, history, status,
         phase_seconds={"mss": float(phases[0]), "muscle_cd": float(phases[1]),
                        "bone_cd": float(phases[2]), "projection": float(phases[3])},
         stopped_by=stopped_by, rebuilds=rebuilds, projection_passes=passes,
-        remaining_penetration=left)
+        remaining_penetration=left, converged=stopped_by == TERMINATION_THRESHOLD)

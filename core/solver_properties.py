@@ -308,14 +308,15 @@ def ignored_settings(settings: SolverSettings) -> list:
 
 def unconverged_warning(settings: SolverSettings, iterations: int, stopped_by: str,
                         last_step: float, to_go: float, remaining_penetration: float) -> str:
-    """What a quasi-static solve that stopped short of its tolerance says: the ``iterations``
+    """What a solve that stopped short of its tolerance says: the ``iterations``
     it ran, why it stopped, its ``last_step`` (mm, the largest particle move), the estimated
     distance ``to_go`` (mm, inf when the steps are not shrinking) and the deepest overlap
     left (mm)."""
     still = (f"the steps still to come would move one about {to_go:.3g} mm more"
              if math.isfinite(to_go) else "the steps are not shrinking yet")
     tolerance, overlap = name_of("quasi_static.tolerance"), name_of("contacts.penetration_tolerance")
-    return (f"the quasi-static solve did not converge in {iterations} iterations ({stopped_by}): "
+    return (f"the {settings.method} solve did not converge in {iterations} iterations "
+            f"({stopped_by}): "
             f"the last step moved a particle {last_step:.3g} mm and {still} ({tolerance} "
             f"{settings.quasi_static.tolerance} mm), deepest overlap left "
             f"{remaining_penetration:.3g} mm ({overlap} "

@@ -47,7 +47,7 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.model import Bones, MSSModel, PreparedModel, prepare, with_rest_state
 from muscle_mss.core.solver import solve
 from muscle_mss.core.errors import MuscleMSSError, PoseError
-from muscle_mss.core.settings import METHOD_QUASI_STATIC, TERMINATION_THRESHOLD, SolverSettings
+from muscle_mss.core.settings import METHOD_QUASI_STATIC, SolverSettings
 from muscle_mss.core.solver_properties import (SOLVER_PROPERTIES, ignored_settings,
                                                unconverged_warning)
 
@@ -161,19 +161,16 @@ class MSSCollisionSolver(MuscleFilter):
         columns[A.COLLIDING_PAIRS] = result.colliding_pairs
         columns[A.MAX_PENETRATION] = result.max_penetration
         columns[A.SECONDS] = result.seconds
-        quasi_static = result.method == METHOD_QUASI_STATIC
-        if quasi_static:
+        if result.residual is not None:
             columns[A.RESIDUAL] = result.residual
         V.fill_table(outputs[1], columns)
         V.set_field(outputs[1], A.PROJECTION_PASSES, result.projection_passes)
         V.set_field(outputs[1], A.REMAINING_PENETRATION, result.remaining_penetration)
-        converged = (result.converged if quasi_static
-                     else result.stopped_by == TERMINATION_THRESHOLD)
-        V.set_field(outputs[1], A.CONVERGED, int(converged))
+        V.set_field(outputs[1], A.CONVERGED, int(result.converged))
         V.set_field(outputs[1], A.METHOD, result.method)
         for part, name in A.PHASE_SECONDS.items():
             V.set_field(outputs[1], name, float(result.phase_seconds.get(part, 0.0)))
-        if quasi_static and not converged:
+        if result.residual is not None and not result.converged:
             vtkOutputWindow.GetInstance().DisplayWarningText(
                 f"{self.LABEL}: " + unconverged_warning(
                     self.settings(), result.iterations, result.stopped_by, result.residual[-1],

@@ -18,7 +18,7 @@ from ..model import (NO_BONES, Bones, MSSModel, PreparedModel, SolveResult, chec
                      prepare)
 from ..divergence import scene_size
 from ..solver_properties import name_of
-from ..settings import (METHOD_QUASI_STATIC, SPRING_ENERGIES,
+from ..settings import (METHOD_QUASI_STATIC,
                         TERMINATION_BUDGET, TERMINATION_ITERATIONS, SolverSettings)
 from .energy import ContactEnergy
 from .lbfgs import LBFGSHistory, direction, inner, largest_move, settled
@@ -48,17 +48,15 @@ VOLUME_REFRESH = 10
 
 @dataclass
 class QuasiStaticResult(SolveResult):
-    """:class:`~muscle_mss.core.model.SolveResult` plus ``residual`` (K,) mm, the largest
-    particle move of each iteration's quasi-Newton step, ``energy`` (K,) g mm^2/s^2 at the start
-    of each iteration, and ``converged``: the loop met the tolerance and the final passes left
-    no overlap above the penetration tolerance. ``velocity`` is zero (a static solution);
+    """:class:`~muscle_mss.core.model.SolveResult` (its ``residual`` the largest particle move
+    of each iteration's quasi-Newton step, ``converged``: the loop met the tolerance and the
+    final passes left no overlap above the penetration tolerance) plus ``energy`` (K,)
+    g mm^2/s^2 at the start of each iteration. ``velocity`` is zero (a static solution);
     ``mean_displacement`` (K, M) is each muscle's mean particle move of the iteration (fixed
     particles count as not moving); ``muscle_pairs``, ``bone_pairs`` and ``max_penetration``
     the overlapping pairs and the deepest overlap (mm) at the start of each iteration."""
 
-    residual: np.ndarray | None = None
     energy: np.ndarray | None = None
-    converged: bool = False
     method: str = METHOD_QUASI_STATIC
 
 
