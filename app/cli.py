@@ -25,8 +25,8 @@ from muscle_mss.core.scene import Scene
 
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters.fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
-from .run_options import (add_cache_option, add_run_options, cache_from, settings_from,
-                          writing_from)
+from .run_options import (add_cache_option, add_jobs_option, add_run_options, cache_from,
+                          jobs_from, settings_from, writing_from)
 
 
 def scene_counts(scene: Scene) -> str:
@@ -218,12 +218,13 @@ def timings_note(timings: dict) -> str:
 
 
 def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
-                   writing=None, pipeline=None, start=None) -> list:
+                   writing=None, pipeline=None, start=None, jobs: int = 1) -> list:
     """Run a whole motion with a progress bar; write summary, series index and pictures; print
     the summary table. ``writing``: a :class:`run_output.Writing` (default: every series, the
     default compressor); ``pipeline``: the scene's, its kernels compiled
     (:func:`prepared_pipeline`), else built here; ``start``: when the command started
-    (``time.perf_counter``). Returns the summary rows."""
+    (``time.perf_counter``); ``jobs``: worker processes that solve the time points
+    (``motion_run.run_motion``). Returns the summary rows."""
     from . import motion_run, run_output
     from .output_folder import claim
     from .pictures import convergence_picture, poses_picture
@@ -240,7 +241,8 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
 
     pipeline, rows = motion_run.run_motion(scene_folder, out, settings, on_step=on_step,
                                            series_names=writing.series,
-                                           compressor=writing.compressor, pipeline=pipeline)
+                                           compressor=writing.compressor, pipeline=pipeline,
+                                           jobs=jobs)
     cached = pipeline.frames.summary() if pipeline.frames is not None else None
     run_output.write_summary(out, rows)
     run_output.write_index(out, pipeline.times, series_names=writing.series)
@@ -318,6 +320,7 @@ def cmd_demo(args) -> int:
     from .run_output import run_places
     from muscle_mss.filters.scene_io import scene_files
     writing, settings, cache = writing_from(args), settings_from(args), cache_from(args)
+    jobs = jobs_from(args)
     start = wallclock.perf_counter()
     scene_folder = os.path.join(args.out, "scene")
     places = run_places(range(len(demo_region_motion(args.region).times)), writing.series)
@@ -331,7 +334,7 @@ def cmd_demo(args) -> int:
             print(f"demo scene ({args.region}, {args.size}): {scene_counts(scene)} -> "
                   f"{scene_folder}", flush=True)
             pipeline, _ = prepared_pipeline(scene_folder, settings, compiling, cache=cache)
-        run_and_report(scene_folder, args.out, settings, scene, writing, pipeline, start)
+        run_and_report(scene_folder, args.out, settings, scene, writing, pipeline, start, jobs)
     return 0
 
 
@@ -340,6 +343,7 @@ def cmd_run(args) -> int:
     from .run_output import convergence_file, run_places
     from muscle_mss.filters.scene_io import load_scene
     writing, settings, cache = writing_from(args), settings_from(args), cache_from(args)
+    jobs = jobs_from(args, one_time_point=args.time is not None)
     scene = load_scene(args.scene)
     print(f"{args.scene}: {scene_counts(scene)}")
     times = list(scene.motion.times)
@@ -378,7 +382,8 @@ def cmd_run(args) -> int:
             start = wallclock.perf_counter()
             with compiling_meanwhile(settings) as compiling:
                 pipeline, _ = prepared_pipeline(args.scene, settings, compiling, cache=cache)
-            run_and_report(args.scene, args.out, settings, scene, writing, pipeline, start)
+            run_and_report(args.scene, args.out, settings, scene, writing, pipeline, start,
+                           jobs)
         else:
             pipeline = run_time_point(args, settings, writing, cache)
         frames = pipeline.frames
@@ -412,15 +417,18 @@ def cmd_study(args) -> int:
     print(f"{args.scene}: {scene_counts(scene)}")
     compile_kernels()
     with held_output_folder(args.out, args.overwrite, study=True, scene=args.scene):
-        path = study_into(args.scene, args.out, args.resolution, args.time, cache_from(args))
+        path = study_into(args.scene, args.out, args.resolution, args.time, cache_from(args),
+                          jobs_from(args))
     print(f"wrote {path} (figures as PNG, their numbers as CSV beside it)")
     return 0
 
 
-def study_into(scene_folder: str, out: str, resolution=None, time=None, cache=None) -> str:
+def study_into(scene_folder: str, out: str, resolution=None, time=None, cache=None,
+               jobs: int = 1) -> str:
     """Run :func:`~muscle_mss.app.study.run_study` with a progress bar and write its
     report into ``out`` (held by the caller); the report's path. ``cache``: the frame cache's
-    folder (None: every frame solved)."""
+    folder (None: every frame solved); ``jobs``: worker processes that solve the motion's
+    time points."""
     from muscle_mss.filters.scene_io import load_scene
     from .study import run_study
     from .study_report import write_report
@@ -433,7 +441,7 @@ def study_into(scene_folder: str, out: str, resolution=None, time=None, cache=No
         bars.setdefault(label, ProgressBar(total, label)).update(done)
 
     study = run_study(scene_folder, resolution or DEFAULT_PARTICLES_PER_FIBRE, index, progress,
-                      asked_time=time, cache=cache)
+                      asked_time=time, cache=cache, jobs=jobs)
     return write_report(study, out)
 
 
@@ -503,6 +511,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "edited; refused without it). An earlier demo's run and scene are "
                         "replaced without it")
     add_run_options(p)
+    add_jobs_option(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("run", help="run a scene's motion (or one time point) and write results")
@@ -513,6 +522,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the results of an earlier run in OUT (refused without it; "
                         "the same run again resumes or completes it)")
     add_run_options(p)
+    add_jobs_option(p)
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("study", help="the paper's experiments (spring layouts, volume, time "
@@ -527,6 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier study in OUT (refused without it)")
     add_cache_option(p)
+    add_jobs_option(p)
     p.set_defaults(func=cmd_study)
 
     p = sub.add_parser("cache", help="the frame cache: where it is, its entries and size "

@@ -286,7 +286,8 @@ def time_block(count: int, k: int, parts: int) -> range:
 
 
 def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
-               series_names=SERIES, compressor=DEFAULT_COMPRESSOR, pipeline=None, cache=None):
+               series_names=SERIES, compressor=DEFAULT_COMPRESSOR, pipeline=None, cache=None,
+               jobs=1):
     """Compute the time points of a scene's motion and write their files.
 
     ``part = (k, K)`` computes the k-th of K contiguous blocks of time points (MPI rank k of
@@ -299,13 +300,24 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
     already (its first time point prepared: :func:`prepare_time_point`), else a new one
     reading and filling the frame cache in the folder ``cache`` (None: none).
 
-    ``on_step(result, done, total)`` is called after each time point (progress bars). Returns the
-    pipeline and the summary rows in time-point order; the caller writes ``summary.csv`` and the
-    ``.pvd`` index (:mod:`~muscle_mss.app.run_output`) once all time points exist.
+    ``jobs`` above 1: the time points are solved by that many worker processes, the files
+    placed here in time order, the same files (:mod:`~muscle_mss.app.motion_jobs`; not with
+    ``WarmStart`` or a time budget, nor in ParaView's Python: a note says so).
+
+    ``on_step(result, done, total)`` is called after each time point (progress bars; with
+    ``jobs``, as each arrives). Returns the pipeline and the summary rows in time-point order;
+    the caller writes ``summary.csv`` and the ``.pvd`` index
+    (:mod:`~muscle_mss.app.run_output`) once all time points exist.
     """
     pipeline = pipeline or build_pipeline(scene_folder, settings, cache)
     indices = time_block(len(pipeline.times), *part)
     os.makedirs(out, exist_ok=True)
+    if jobs > 1 and len(indices) > 1:
+        from . import motion_jobs
+        if motion_jobs.workers_allowed(pipeline, jobs):
+            return pipeline, motion_jobs.run_in_workers(
+                pipeline, scene_folder, out, settings, indices, jobs, on_step, series_names,
+                compressor)
     rows = []
     for done, index in enumerate(indices, start=1):
         result = solve_time_point(pipeline, index)

@@ -81,6 +81,27 @@ def add_cache_option(p) -> None:
                         f"or {default_folder()}); off: neither read nor write")
 
 
+def add_jobs_option(p) -> None:
+    """``--jobs J``: how many processes solve a whole motion's time points at once
+    (:mod:`muscle_mss.app.motion_jobs`)."""
+    p.add_argument("--jobs", metavar="J",
+                   help="processes that solve the motion's time points at once, Numba's "
+                        "threads shared out between them (default: the cores; "
+                        "$MUSCLE_MSS_JOBS); the results are those of --jobs 1")
+
+
+def jobs_from(args, one_time_point: bool = False) -> int:
+    """The worker processes ``--jobs`` asks for (its default: the cores); more than one
+    refused for ``one_time_point`` (``muscle-mss run --time``, solved in this process)."""
+    from .motion_jobs import checked_jobs, default_jobs
+    given = getattr(args, "jobs", None)
+    jobs = default_jobs() if given is None else checked_jobs(given)
+    if given is not None and jobs > 1 and one_time_point:
+        raise MuscleMSSError(f"--jobs {given} applies to a whole motion; --time solves one "
+                             "time point in this process: drop --jobs")
+    return jobs
+
+
 def cache_from(args) -> str | None:
     """The frame cache folder ``--cache`` chooses, or None when it is off."""
     from .frame_cache import chosen_folder

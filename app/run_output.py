@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from vtkmodules.vtkCommonCore import vtkVersion
+from vtkmodules.vtkCommonCore import vtkAbstractArray, vtkDataArray, vtkVersion
 from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataWriter
 
 from muscle_mss.core.errors import MuscleMSSError
@@ -87,6 +87,8 @@ COMPRESSORS = (COMPRESSOR_LZ4, COMPRESSOR_ZLIB, COMPRESSOR_NONE)
 """Compressors of the series' appended binary data: LZ4 (default: fast, readable by ParaView
 5.x), ZLib (smaller, slower: VTK's own default) or none (fastest, largest)."""
 DEFAULT_COMPRESSOR = COMPRESSOR_LZ4
+STAGING_PREFIX = ".writing-"
+"""The name of a time point's private folder under ``series/`` while it is written."""
 
 
 @dataclass(frozen=True)
@@ -169,18 +171,38 @@ def write_time_point(result, out: str, series_names=SERIES,
     compressed with ``compressor`` (one of :data:`COMPRESSORS`). Adds the seconds taken to
     ``result.timings["write"]``.
 
-    Each ``.vtm`` is written with its ``.vtp`` files into a private folder first, checked (the
-    writer succeeded and every file the ``.vtm`` names exists), then renamed into ``series/``:
-    a failed write raises :class:`MuscleMSSError` and never leaves a ``.vtm`` pointing at
-    missing files. Where VTK lets it (:data:`PARALLEL_WRITES`) the series are written at the
-    same time, each by its own thread (they share no array); this returns when all are
-    written."""
+    Each ``.vtm`` is written with its ``.vtp`` files into a private folder first
+    (:func:`stage_time_point`), checked (the writer succeeded and every file the ``.vtm`` names
+    exists), then renamed into ``series/`` (:func:`place_time_point`): a failed write raises
+    :class:`MuscleMSSError` and never leaves a ``.vtm`` pointing at missing files. Where VTK
+    lets it (:data:`PARALLEL_WRITES`) the series are written at the same time, each by its own
+    thread (they share no array); this returns when all are written."""
     start = wallclock.perf_counter()
+    place_time_point(result, stage_time_point(result, out, series_names, compressor), out)
+    result.timings["write"] = wallclock.perf_counter() - start
+
+
+@dataclass
+class Staged:
+    """One time point's series written into its private folder ``staging`` (under
+    ``OUT/series``) by :func:`stage_time_point`, not yet in place: ``written`` holds
+    ``(series name, staged .vtm, whether its writer succeeded)``. A worker process stages, the
+    run's process places (:mod:`~muscle_mss.app.motion_jobs`)."""
+
+    staging: str
+    written: list
+
+
+def stage_time_point(result, out: str, series_names=SERIES,
+                     compressor: str = DEFAULT_COMPRESSOR) -> Staged:
+    """Write the series of ``result`` (as :func:`write_time_point`) into a new private folder
+    under ``OUT/series``, nothing in place yet: :func:`place_time_point` checks and places
+    them, :func:`discard_staged` removes them."""
     series = os.path.join(out, SERIES_FOLDER)
     try:
         os.makedirs(series, exist_ok=True)
         os.makedirs(os.path.join(out, CONVERGENCE_FOLDER), exist_ok=True)
-        staging = tempfile.mkdtemp(dir=series, prefix=".writing-")
+        staging = tempfile.mkdtemp(dir=series, prefix=STAGING_PREFIX)
     except OSError as err:
         raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
 
@@ -190,27 +212,83 @@ def write_time_point(result, out: str, series_names=SERIES,
         writer.SetFileName(staged)
         writer.SetInputData(data)
         configure_writer(writer, compressor)
-        return staged, writer.Write() == 1 and writer.GetErrorCode() == 0
+        return name, staged, writer.Write() == 1 and writer.GetErrorCode() == 0
 
     jobs = [(name, data) for name, data in
             zip(SERIES, (result.surfaces, result.fibres, result.particles))
             if name in series_names]
+    for _, data in jobs:
+        forget_ranges(data)
     try:
         with ThreadPoolExecutor(max(len(jobs), 1) if PARALLEL_WRITES else 1) as writers:
-            written = list(writers.map(lambda job: write(*job), jobs))
-        for (name, _), (staged, succeeded) in zip(jobs, written):
+            return Staged(staging, list(writers.map(lambda job: write(*job), jobs)))
+    except OSError as err:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+
+
+_RANGE_KEYS = (vtkAbstractArray.PER_COMPONENT(), vtkAbstractArray.PER_FINITE_COMPONENT(),
+               vtkDataArray.L2_NORM_RANGE(), vtkDataArray.L2_NORM_FINITE_RANGE())
+
+
+def forget_ranges(data) -> None:
+    """Remove the value ranges VTK keeps in the information of each array of the multiblock
+    ``data`` (computed when an array was written before): the XML writer writes an array
+    that holds them in a longer form, so that a time point's file would depend on whether
+    its arrays passed through the writer at an earlier time point (the arrays the stages
+    before the solver make once and pass on) in the same process."""
+    for index in range(data.GetNumberOfBlocks()):
+        block = data.GetBlock(index)
+        if block is None:
+            continue
+        if block.IsA("vtkMultiBlockDataSet"):
+            forget_ranges(block)
+            continue
+        for attributes in (block.GetPointData(), block.GetCellData(), block.GetFieldData()):
+            for k in range(attributes.GetNumberOfArrays()):
+                array = attributes.GetAbstractArray(k)
+                if array is not None and array.HasInformation():
+                    information = array.GetInformation()
+                    for key in _RANGE_KEYS:
+                        information.Remove(key)
+
+
+def place_time_point(result, staged: Staged, out: str) -> None:
+    """Check the series :func:`stage_time_point` wrote for ``result`` and rename them into
+    place (each ``.vtm`` after its folder of blocks), then write its convergence table; the
+    private folder is removed either way."""
+    try:
+        for name, vtm, succeeded in staged.written:
             final = series_file(name, result.index)
-            named = _check_written(staged, os.path.join(out, final), succeeded)
+            named = _check_written(vtm, os.path.join(out, final), succeeded)
             folder.claim(out, final, *(os.path.join(os.path.dirname(final), n) for n in named))
-            _move_into_place(staged, os.path.join(out, final),
+            _move_into_place(vtm, os.path.join(out, final),
                              os.path.join(out, series_blocks_folder(name, result.index)))
     except OSError as err:
-        raise MuscleMSSError(f"cannot write {series}: {err.strerror or err}") from None
+        raise MuscleMSSError(f"cannot write {os.path.join(out, SERIES_FOLDER)}: "
+                             f"{err.strerror or err}") from None
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        discard_staged(staged)
     folder.claim(out, convergence_file(result.index))
     write_columns(os.path.join(out, convergence_file(result.index)), result.convergence)
-    result.timings["write"] = wallclock.perf_counter() - start
+
+
+def discard_staged(staged: Staged) -> None:
+    """Remove what :func:`stage_time_point` wrote and was not placed."""
+    shutil.rmtree(staged.staging, ignore_errors=True)
+
+
+def remove_stale_staging(out: str) -> None:
+    """Remove the private folders of :func:`stage_time_point` left under ``OUT/series`` by
+    processes that were stopped while they wrote (the caller holds ``out``: no other run
+    writes there)."""
+    with contextlib.suppress(FileNotFoundError):
+        for entry in os.scandir(os.path.join(out, SERIES_FOLDER)):
+            if entry.name.startswith(STAGING_PREFIX) and entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path, ignore_errors=True)
 
 
 def configure_writer(writer, compressor: str) -> None:

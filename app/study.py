@@ -283,46 +283,67 @@ def layout_result(scene_folder, layout: str, resolution: int, index: int,
         np.array([row[A.VOLUME_ERROR_PCT] for row in paper.rows]), particles, time_step)
 
 
-def motion_series(scene_folder, resolution: int, progress=None, cache=None) -> MotionSeries:
+def series_frame(pipeline, k: int) -> tuple:
+    """What the motion series keeps of time point ``k`` of ``pipeline``: ``(time, muscles,
+    fibre statistics, rest arc/chord (time point 0 only, else None), path lengths, volume
+    errors, solver phase seconds, summary rows)``; a worker process's part of it
+    (:mod:`~muscle_mss.app.motion_jobs`), as the serial loop's."""
+    result = solve_time_point(pipeline, k)
+    muscles = [row[A.MUSCLE] for row in result.rows]
+    stats = dict((name, fibre_statistics(block))
+                 for name, block in V.blocks(result.fibres, "deformed fibres"))
+    blocks = dict(V.blocks(result.particles, "solved model"))
+    rest = np.array([rest_arc_chord(blocks[m]) for m in muscles]) if k == 0 else None
+    table = pipeline.solver.GetOutputDataObject(1)
+    return (result.time, muscles, [stats[m] for m in muscles], rest,
+            [path_lengths(blocks[m]) for m in muscles],
+            [row[A.VOLUME_ERROR_PCT] for row in result.rows],
+            [float(V.field(table, A.PHASE_SECONDS[p], 0.0)) for p in PHASES], result.rows)
+
+
+def motion_series(scene_folder, resolution: int, progress=None, cache=None,
+                  jobs: int = 1) -> MotionSeries:
     """Every time point of the scene's motion through the six filters at their defaults (the
-    default layout) and ``resolution`` particles per fibre; ``progress(done, total)``."""
-    pipeline = build_pipeline(scene_folder, {"ParticlesPerFibre": resolution,
-                                             "Layout": DEFAULT_LAYOUT}, cache)
-    times, fibres, paths, volume, phases, rows = [], [], [], [], [], []
-    muscles = None
-    for k in range(len(pipeline.times)):
-        result = solve_time_point(pipeline, k)
-        muscles = [row[A.MUSCLE] for row in result.rows]
-        stats = dict((name, fibre_statistics(block))
-                     for name, block in V.blocks(result.fibres, "deformed fibres"))
-        fibres.append([stats[m] for m in muscles])
-        blocks = dict(V.blocks(result.particles, "solved model"))
-        if k == 0:
-            rest = np.array([rest_arc_chord(blocks[m]) for m in muscles])
-        paths.append([path_lengths(blocks[m]) for m in muscles])
-        volume.append([row[A.VOLUME_ERROR_PCT] for row in result.rows])
-        table = pipeline.solver.GetOutputDataObject(1)
-        phases.append([float(V.field(table, A.PHASE_SECONDS[p], 0.0)) for p in PHASES])
-        times.append(result.time)
-        rows += result.rows
-        if progress is not None:
-            progress(k + 1, len(pipeline.times))
+    default layout) and ``resolution`` particles per fibre; ``progress(done, total)``;
+    ``jobs``: worker processes that solve the time points (:mod:`~.motion_jobs`; the same
+    series)."""
+    from . import motion_jobs
+    settings = {"ParticlesPerFibre": resolution, "Layout": DEFAULT_LAYOUT}
+    pipeline = build_pipeline(scene_folder, settings, cache)
+    total = len(pipeline.times)
+    frames = {}
+    if jobs > 1 and total > 1 and motion_jobs.workers_allowed(pipeline, jobs):
+        folder = pipeline.frames.cache.folder if pipeline.frames is not None else None
+        motion_jobs.solve_in_workers(
+            (str(scene_folder), settings, folder), range(total), series_frame, jobs,
+            on_result=lambda k, frame, done, total: progress and progress(done, total),
+            on_ready=frames.__setitem__)
+    else:
+        for k in range(total):
+            frames[k] = series_frame(pipeline, k)
+            if progress is not None:
+                progress(k + 1, total)
+    times, muscles, fibres, rests, paths, volume, phases, rows = zip(
+        *(frames[k] for k in range(total)))
+    rows = [row for frame in rows for row in frame]
     fibres = np.asarray(fibres, dtype=np.float64)          # (T, M, 6)
     paths = np.asarray(paths, dtype=np.float64)            # (T, M, 2)
-    return MotionSeries(np.asarray(times), muscles, fibres[:, :, :3], paths[:, :, 0],
-                        paths[:, :, 0] / paths[:, :, 1] - 1.0, fibres[:, :, 3], rest,
+    return MotionSeries(np.asarray(times), muscles[-1], fibres[:, :, :3], paths[:, :, 0],
+                        paths[:, :, 0] / paths[:, :, 1] - 1.0, fibres[:, :, 3], rests[0],
                         fibres[:, :, 4], fibres[:, :, 5].astype(np.int64),
                         np.asarray(volume, dtype=np.float64),
                         np.asarray(phases), rows)
 
 
 def run_study(scene_folder, resolution: int, index: int | None = None,
-              progress=None, asked_time: float | None = None, cache=None) -> Study:
+              progress=None, asked_time: float | None = None, cache=None,
+              jobs: int = 1) -> Study:
     """The whole study of the scene in ``scene_folder`` at ``resolution`` particles per fibre,
     its layouts at time point ``index`` (default the most flexed: the bones farthest from rest),
     the one nearest ``asked_time`` when that was asked (the report says so).
     ``progress(label, done, total)`` after each step; ``cache``: the frame cache's folder
-    (:func:`~muscle_mss.app.frame_cache.chosen_folder`; None: every frame solved)."""
+    (:func:`~muscle_mss.app.frame_cache.chosen_folder`; None: every frame solved);
+    ``jobs``: worker processes that solve the motion's time points."""
     from muscle_mss.core.motion import farthest_pose_index
     from muscle_mss.filters.scene_io import load_scene
     start = wallclock.perf_counter()
@@ -331,7 +352,7 @@ def run_study(scene_folder, resolution: int, index: int | None = None,
     index = flexed if index is None else index
     say = progress or (lambda label, done, total: None)
     series = motion_series(scene_folder, resolution,
-                           lambda done, total: say("motion", done, total), cache)
+                           lambda done, total: say("motion", done, total), cache, jobs)
     layouts = []
     for k, layout in enumerate(LAYOUTS):
         layouts.append(layout_result(scene_folder, layout, resolution, index, cache))

@@ -12,6 +12,7 @@ import pytest
 os.environ["MUSCLE_MSS_BONE_FIELDS"] = "off"
 os.environ["MUSCLE_MSS_MVC_WEIGHTS"] = "off"
 os.environ["MUSCLE_MSS_FRAME_CACHE"] = "off"
+os.environ["MUSCLE_MSS_JOBS"] = "1"      # whole motions in one process; tests/test_jobs.py: --jobs
 
 
 @pytest.fixture(scope="session")
