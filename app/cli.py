@@ -6,7 +6,7 @@ writes the deterministic demo thigh scene (``--region arm``: the elbow) and its 
 OUT`` does the same for a user's scene (see :mod:`muscle_mss.app.run_output` for the files
 written); ``muscle-mss study SCENE OUT`` writes the paper's experiments and the fibre-length
 study as ``OUT/report.html`` (:mod:`muscle_mss.app.study`); ``muscle-mss cache info|clear``
-shows or empties the frame cache (:mod:`muscle_mss.app.frame_cache`), which ``--cache DIR|off``
+shows or empties the frame cache (:mod:`muscle_mss.filters.frame_cache`), which ``--cache DIR|off``
 points elsewhere or turns off.
 """
 from __future__ import annotations
@@ -448,7 +448,7 @@ def study_into(scene_folder: str, out: str, resolution=None, time=None, cache=No
 def cmd_cache(args) -> int:
     """``muscle-mss cache info|clear``: the frame cache's folder, entries, size and bound, or
     remove its entries."""
-    from .frame_cache import FrameCache, chosen_folder
+    from muscle_mss.filters.frame_cache import FrameCache, chosen_folder
     folder = chosen_folder(args.cache)
     if folder is None:
         print("frame cache: off (--cache off or $MUSCLE_MSS_FRAME_CACHE=off)")

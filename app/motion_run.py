@@ -53,12 +53,12 @@ class Pipeline:
     times: list = field(default_factory=list)
     frames: object = None
     """The frame cache the solver reads and fills (a
-    :class:`~muscle_mss.app.frame_cache.SolverFrames`), or None."""
+    :class:`~muscle_mss.filters.frame_cache.SolverFrames`), or None."""
 
 
 class CachedCollisionSolver(MSSCollisionSolver):
     """The MSS Collision Solver that takes a frame from the frame cache (``frames``, a
-    :class:`~muscle_mss.app.frame_cache.SolverFrames`) when it holds it and stores each frame
+    :class:`~muscle_mss.filters.frame_cache.SolverFrames`) when it holds it and stores each frame
     it solves: everything after the solve (the outputs, the bone depths, the warnings) runs as
     for a solved frame, so its outputs are the solved frame's."""
 
@@ -82,7 +82,7 @@ def build_pipeline(scene_folder, settings: dict | None = None,
     ``settings`` maps property names to values (the solver's from
     :func:`~muscle_mss.core.solver_properties.by_name`); each is applied to every filter that
     has that property. ``cache``: the frame cache's folder
-    (:func:`~muscle_mss.app.frame_cache.chosen_folder`), or None: every frame solved.
+    (:func:`~muscle_mss.filters.frame_cache.chosen_folder`), or None: every frame solved.
     """
     resampler, springs, pose = FibreResampler(), SpringBuilder(), RigidPoseTransform()
     solver = CachedCollisionSolver() if cache else MSSCollisionSolver()
@@ -123,7 +123,7 @@ def build_pipeline(scene_folder, settings: dict | None = None,
         raise MuscleMSSError(f"{os.path.join(str(scene_folder), MOTION_FILE)} gave no time steps")
     frames = None
     if cache:
-        from .frame_cache import FrameCache, SolverFrames
+        from muscle_mss.filters.frame_cache import FrameCache, SolverFrames
         frames = solver.frames = SolverFrames(FrameCache(cache), scene_folder, filters)
     return Pipeline(muscles, fibres, bones, motion, resampler, springs, pose, solver, deformer,
                     probe, times, frames)

@@ -73,8 +73,8 @@ def add_run_options(p) -> None:
 
 def add_cache_option(p) -> None:
     """``--cache DIR|off``: where solved frames are kept and looked up
-    (:mod:`muscle_mss.app.frame_cache`)."""
-    from .frame_cache import ENVIRONMENT, default_folder
+    (:mod:`muscle_mss.filters.frame_cache`)."""
+    from muscle_mss.filters.frame_cache import ENVIRONMENT, default_folder
     p.add_argument("--cache", metavar="DIR|off",
                    help="frame cache: load frames solved before with the same scene, "
                         f"properties and code, store those solved now (default ${ENVIRONMENT} "
@@ -104,7 +104,7 @@ def jobs_from(args, one_time_point: bool = False) -> int:
 
 def cache_from(args) -> str | None:
     """The frame cache folder ``--cache`` chooses, or None when it is off."""
-    from .frame_cache import chosen_folder
+    from muscle_mss.filters.frame_cache import chosen_folder
     return chosen_folder(getattr(args, "cache", None))
 
 

@@ -4,7 +4,7 @@ resumes or completes it instead of being refused (``muscle-mss run SCENE OUT``).
 A run writes ``OUT/.muscle-mss-run.json`` (listed in the folder's manifest, so that
 ``--overwrite`` removes it) before it solves: a digest of the scene's files, every run option
 with its effective value (defaults included), what it writes and how, the time asked
-(``--time``) and the numerics' version (:func:`~muscle_mss.app.frame_cache.numerics_version`);
+(``--time``) and the numerics' version (:func:`~muscle_mss.filters.frame_cache.numerics_version`);
 then again with ``finished`` once its last file is written. A later run with the same record
 (:func:`differences` empty) into the folder completes it: nothing to do when it finished and
 every file it wrote is there, else it is run again into the folder, its frames coming back from
@@ -18,7 +18,7 @@ import os
 from muscle_mss.core.errors import MuscleMSSError
 
 from . import output_folder as folder
-from .frame_cache import numerics_version, scene_digest
+from muscle_mss.filters.frame_cache import numerics_version, scene_digest
 from .run_options import _shown, run_properties
 
 RECORD_FILE = ".muscle-mss-run.json"

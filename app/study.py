@@ -342,7 +342,7 @@ def run_study(scene_folder, resolution: int, index: int | None = None,
     its layouts at time point ``index`` (default the most flexed: the bones farthest from rest),
     the one nearest ``asked_time`` when that was asked (the report says so).
     ``progress(label, done, total)`` after each step; ``cache``: the frame cache's folder
-    (:func:`~muscle_mss.app.frame_cache.chosen_folder`; None: every frame solved);
+    (:func:`~muscle_mss.filters.frame_cache.chosen_folder`; None: every frame solved);
     ``jobs``: worker processes that solve the motion's time points."""
     from muscle_mss.core.motion import farthest_pose_index
     from muscle_mss.filters.scene_io import load_scene

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from .errors import MuscleMSSError
 
-KINDS = ("int", "double", "bool", "enum")
+KINDS = ("int", "double", "bool", "enum", "string")
 
 
 @dataclass(frozen=True)
@@ -48,8 +48,9 @@ class Option:
 class Property:
     """A filter property.
 
-    ``kind`` is one of ``int``, ``double``, ``bool``, ``enum``. An enum stores the index of
-    its choice (ParaView stores the int) and accepts the choice's text in ``SetX``.
+    ``kind`` is one of ``int``, ``double``, ``bool``, ``enum``, ``string``. An enum stores the
+    index of its choice (ParaView stores the int) and accepts the choice's text in ``SetX``; a
+    string stores its text (a folder, say: ParaView shows a text field).
     ``minimum`` / ``maximum`` bound int and double values (inclusive, None = unbounded).
     ``doc`` becomes the tooltip and the setter's docstring; ``group`` the panel group.
     ``field``: the :class:`~muscle_mss.core.settings.SolverSettings` field the property sets
@@ -88,6 +89,12 @@ class Property:
             return index
         if self.kind == "bool":
             return bool(value)
+        if self.kind == "string":
+            if value is None:           # ParaView sets an empty text as None
+                return ""
+            if not isinstance(value, str):
+                raise MuscleMSSError(f"{where}: {value!r} is not a text")
+            return value
         try:
             number = float(value)
         except (TypeError, ValueError):

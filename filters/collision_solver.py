@@ -33,11 +33,18 @@ before it (``WarmStart`` trades that for speed). The whole stage, fibre shorteni
 contact (``BoneContact``: solids by default, or the paper's sphere sets) included, is one call
 of :func:`muscle_mss.core.solver.solve`; this filter converts VTK to arrays and back, and keeps
 what a later pose of the same model can reuse.
+
+Frame cache (property ``FrameCache``, :mod:`~muscle_mss.filters.frame_cache`): a frame solved
+before, by this filter or by ``muscle-mss run``, with the same scene files, the same properties
+of this filter and of the three before it, and the same time, is loaded instead of solved; the
+outputs are then computed from it as from a solve. ``frame_counts`` counts the frames loaded
+and solved.
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
 
 import numpy as np
 
@@ -47,6 +54,7 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.model import Bones, MSSModel, PreparedModel, prepare, with_rest_state
 from muscle_mss.core.solver import solve
 from muscle_mss.core.errors import MuscleMSSError, PoseError
+from muscle_mss.core.scene import BONES_FILE, FIBRES_FILE, MOTION_FILE, MUSCLES_FILE
 from muscle_mss.core.settings import METHOD_QUASI_STATIC, SolverSettings
 from muscle_mss.core.solver_properties import (SOLVER_PROPERTIES, ignored_settings,
                                                unconverged_warning)
@@ -54,7 +62,9 @@ from muscle_mss.core.solver_properties import (SOLVER_PROPERTIES, ignored_settin
 from . import array_names as A
 from .bone_sets import POSED_BONES as BONES, bone_depths, contact_bones, particles_in_bones
 from . import vtk_arrays as V
-from .base import MuscleFilter, Port
+from .base import MuscleFilter, Port, reader_files
+from .frame_cache import (FRAME_CACHE_PROPERTY, KEYED_FILTERS, FrameCache, SolverFrames,
+                          chosen_folder, filter_name, scene_digest)
 from .model_blocks import MODEL, MODEL_BLOCK, muscle_block
 
 
@@ -82,7 +92,7 @@ class MSSCollisionSolver(MuscleFilter):
                Port("Convergence", "vtkTable",
                     "One row per iteration: mean displacement per muscle, colliding pairs, "
                     "max penetration, seconds."))
-    PROPERTIES = SOLVER_PROPERTIES
+    PROPERTIES = SOLVER_PROPERTIES + (FRAME_CACHE_PROPERTY,)
 
     def __init__(self):
         super().__init__()
@@ -100,6 +110,17 @@ class MSSCollisionSolver(MuscleFilter):
         self._static = (None, None)
         self._ignored_warned = ()     # the ignored settings last warned about
         self.setup_counts = {"checked": 0, "remembered": 0, "prepared": 0, "rest state": 0}
+        self.frame_counts = {"loaded": 0, "solved": 0}
+        self._frames = (None, None)     # (what they were made for, SolverFrames or None)
+        self._scene = (None, None)      # (the readers' files and outputs, their digest)
+        self._frames_note = None
+
+    @staticmethod
+    def default_frame_cache():
+        """The folder an empty ``FrameCache`` means: none in a plain VTK pipeline (an
+        application chooses its own: ``muscle-mss run`` its ``--cache``); the ParaView proxy's
+        is the user's frame cache."""
+        return None
 
     def settings(self) -> SolverSettings:
         """The properties as the core's :class:`~muscle_mss.core.settings.SolverSettings`: each
@@ -136,7 +157,15 @@ class MSSCollisionSolver(MuscleFilter):
         contacts = self.settings().contacts
         bones = contact_bones(inputs[1], contacts.bone_contact, contacts.bone_sphere_spacing,
                               contacts.muscle_bone)
-        result = self._solve(model, bones, self._prepare(model, identities))
+        frames, time = self._pipeline_frames(), self.requested_time()
+        result = frames.load(time) if frames is not None and time is not None else None
+        if result is None:
+            result = self._solve(model, bones, self._prepare(model, identities))
+            self.frame_counts["solved"] += 1
+            if frames is not None and time is not None:
+                frames.save(time, result)
+        else:
+            self.frame_counts["loaded"] += 1
         self.solved_bones = bones
         positions, collided = result.positions, result.collided
         items = []
@@ -176,6 +205,33 @@ class MSSCollisionSolver(MuscleFilter):
                     self.settings(), result.iterations, result.stopped_by, result.residual[-1],
                     Q.distance_to_go(result.residual), result.remaining_penetration) + "\n")
         self.progress(1.0)
+
+    def _pipeline_frames(self):
+        """The :class:`~muscle_mss.filters.frame_cache.SolverFrames` of the folder
+        ``FrameCache`` chooses for this pipeline, or None: off, or a pipeline whose frames the
+        key does not determine (said once among the messages)."""
+        text = self.value("FrameCache").strip()
+        folder = chosen_folder(text) if text else self.default_frame_cache()
+        if folder is None:
+            return None
+        found = upstream_scene(self)
+        if isinstance(found, str):
+            if found != self._frames_note:
+                vtkOutputWindow.GetInstance().DisplayText(
+                    f"{self.LABEL}: the frame cache is not used: {found}\n")
+            self._frames_note = found
+            return None
+        self._frames_note = None
+        filters, scene_folder, stamps = found
+        if self._scene[0] != stamps:
+            self._scene = (stamps, scene_digest(scene_folder))
+        made_for = (folder, self._scene[1], tuple(id(f) for f in filters))
+        if self._frames[0] != made_for:
+            warn = lambda text: vtkOutputWindow.GetInstance().DisplayWarningText(  # noqa: E731
+                f"{self.LABEL}: {text}\n")
+            self._frames = (made_for, SolverFrames(FrameCache(folder, warn=warn), scene_folder,
+                                                   (*filters, self), scene=self._scene[1]))
+        return self._frames[1]
 
     def _solve(self, model: MSSModel, bones: Bones, prepared: PreparedModel):
         """:func:`~muscle_mss.core.solver.solve`; the quasi-static method warm started from the
@@ -278,3 +334,54 @@ class MSSCollisionSolver(MuscleFilter):
             self._prepared_key, self._prepared_shape = key, shape
         self._prepared_identity = identities
         return self._prepared
+
+
+SCENE_READS = (MUSCLES_FILE, FIBRES_FILE, BONES_FILE, MOTION_FILE)
+PASSING = ("vtkPVPostFilter",)
+"""What ParaView puts behind every output port: it passes the data on (adding only arrays a view
+asks for)."""
+
+
+def upstream_scene(solver):
+    """``(filters, scene folder, stamps)`` of the pipeline feeding ``solver``: the Muscle MSS
+    filters upstream of it (one of each of the three before it) and the folder whose four
+    scene files its readers read, with the readers' output times
+    (``stamps``: the files are hashed again when a reader read again). A text saying why
+    not when anything else feeds it: another filter, a reader of other files, files of two
+    folders. Then the scene files and the properties do not determine the frame."""
+    filters, files, stamps, seen, stack = {}, {}, [], {}, [solver]
+    while stack:
+        algorithm = stack.pop()
+        for port in range(algorithm.GetNumberOfInputPorts()):
+            for c in range(algorithm.GetNumberOfInputConnections(port)):
+                producer = algorithm.GetInputConnection(port, c).GetProducer()
+                if producer.__this__ in seen:      # the C++ object: wrappers come and go
+                    continue
+                seen[producer.__this__] = producer
+                if producer.GetClassName() in PASSING:
+                    stack.append(producer)
+                    continue
+                if isinstance(producer, MuscleFilter):
+                    name = filter_name(producer)
+                    if name not in KEYED_FILTERS[:-1] or name in filters:
+                        return f"{producer.LABEL} feeds it where the scene's filters do"
+                    filters[name] = producer
+                    stack.append(producer)
+                    continue
+                names = reader_files(producer)
+                if names is None or producer.GetNumberOfInputPorts() > 0 or len(names) != 1:
+                    return (f"{producer.GetClassName()} feeds it, not a reader of one scene "
+                            "file")
+                path = os.path.abspath(names[0])
+                if os.path.basename(path) not in SCENE_READS or \
+                        files.get(os.path.basename(path), path) != path:
+                    return f"a reader of {names[0]} feeds it, not one of {', '.join(SCENE_READS)}"
+                files[os.path.basename(path)] = path
+                data = producer.GetOutputDataObject(0)
+                stamps.append((path, data.GetMTime() if data is not None else 0))
+    folders = {os.path.dirname(p) for p in files.values()}
+    if len(files) != len(SCENE_READS) or len(folders) != 1:
+        return "its readers do not read the four files of one scene folder"
+    if set(filters) != set(KEYED_FILTERS[:-1]):
+        return f"it is not fed by the {', '.join(KEYED_FILTERS[:-1])}"
+    return (tuple(filters[n] for n in KEYED_FILTERS[:-1]), folders.pop(), tuple(sorted(stamps)))

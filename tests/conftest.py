@@ -4,7 +4,7 @@ The bones' distance fields and the muscles' mean value coordinates are not read 
 to the user's disk stores (:mod:`muscle_mss.core.bones.field_store`,
 ``muscle_mss.filters.mvc_surface_deformer.WEIGHTS_STORE``) during the tests, nor by the ParaView
 processes they start: every run computes them, so the counts the tests assert are exact. Nor is
-the frame cache (``muscle_mss.app.frame_cache``): a test that wants it names its folder."""
+the frame cache (``muscle_mss.filters.frame_cache``): a test that wants it names its folder."""
 import os
 
 import pytest

@@ -1,4 +1,4 @@
-"""The frame cache (muscle_mss.app.frame_cache) and the resumed run (muscle_mss.app.run_record):
+"""The frame cache (muscle_mss.filters.frame_cache) and the resumed run (muscle_mss.app.run_record):
 every input of a frame is in its key, the same inputs hit across processes with the same
 outputs, a damaged entry is solved again, concurrent writers, ``--cache off``, resume."""
 import csv
@@ -14,7 +14,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from muscle_mss.app import frame_cache as F
+from muscle_mss.filters import frame_cache as F
 from muscle_mss.filters import EXPORTS, FILTER_NAMES
 
 RUN = ["--iterations", "20"]
@@ -36,6 +36,8 @@ def other_value(prop, value):
         return not value
     if prop.kind == "enum":
         return prop.choices[(value + 1) % len(prop.choices)]
+    if prop.kind == "string":
+        return value + "/elsewhere"
     low = -np.inf if prop.minimum is None else prop.minimum
     high = np.inf if prop.maximum is None else prop.maximum
     step = 1 if prop.kind == "int" else 0.5 * abs(value) + 0.25
@@ -45,14 +47,30 @@ def other_value(prop, value):
 
 @pytest.mark.parametrize("filter_name,prop", all_properties(),
                          ids=[f"{n}.{p.name}" for n, p in all_properties()])
-def test_changing_any_property_of_any_filter_changes_the_key(filter_name, prop):
+def test_changing_any_property_of_the_solver_or_a_filter_before_it_changes_the_key(
+        filter_name, prop):
+    """Every property of the filters a frame depends on is in its key; those of the two
+    filters after the solver (they run on every frame, loaded or solved) and FrameCache
+    (where it is kept) are not."""
     filters = filter_instances()
     before = F.frame_key("scene", filters, 0.5)
     owner = filters[FILTER_NAMES.index(filter_name)]
     getattr(owner, "Set" + prop.name)(other_value(prop, owner.value(prop.name)))
     after = F.frame_key("scene", filters, 0.5)
-    assert F.key_digest(after) != F.key_digest(before)
+    keyed = filter_name in F.KEYED_FILTERS and prop.name not in F.NOT_KEYED
+    assert (F.key_digest(after) != F.key_digest(before)) is keyed
     assert F.key_digest(F.frame_key("scene", filter_instances(), 0.5)) == F.key_digest(before)
+
+
+def test_the_key_names_each_filter_by_its_class_also_in_a_subclass():
+    """The application's cached solver and the ParaView proxies are subclasses of the
+    filters: a frame they store has the key the plain filter asks for."""
+    from muscle_mss.app.motion_run import CachedCollisionSolver
+    filters = filter_instances()
+    cached = [CachedCollisionSolver() if type(f).__name__ == "MSSCollisionSolver" else f
+              for f in filters]
+    assert F.frame_key("scene", cached, 0.5) == F.frame_key("scene", filters, 0.5)
+    assert set(F.frame_key("scene", filters, 0.5)["properties"]) == set(F.KEYED_FILTERS)
 
 
 def test_the_time_and_the_numerics_are_in_the_key():
@@ -118,7 +136,7 @@ def test_the_bound_keeps_the_most_recently_used_entries(tmp_path):
 
 WRITER = textwrap.dedent("""
     import sys, numpy as np
-    from muscle_mss.app.frame_cache import FrameCache
+    from muscle_mss.filters.frame_cache import FrameCache
     cache = FrameCache(sys.argv[1])
     arrays = {"positions": np.linspace(0.0, 1.0, 300000)}
     for _ in range(20):
@@ -258,3 +276,61 @@ def test_an_interrupted_run_resumes_to_the_uninterrupted_outputs(first_run, smal
     assert_same_outputs(out, resumed)
     assert cli.main(["run", str(small_scene_dir), str(resumed), *RUN, "--cache", cache]) == 0
     assert f"{resumed}: complete already" in capsys.readouterr().out
+
+
+# ---- the solver's FrameCache property -----------------------------------------------------------
+
+def _plain_pipeline(scene_folder, frame_cache):
+    from muscle_mss.app.motion_run import build_pipeline
+    return build_pipeline(scene_folder, {"Iterations": 20, "FrameCache": frame_cache})
+
+
+def test_the_solvers_frame_cache_property_loads_what_it_stored_in_a_new_pipeline(
+        small_scene_dir, tmp_path):
+    from muscle_mss.app.motion_run import update_at
+    from muscle_mss.filters import vtk_arrays as V
+    cache = str(tmp_path / "cache")
+    outputs = []
+    for _ in range(2):
+        p = _plain_pipeline(small_scene_dir, cache)
+        outputs.append([V.points_of(b) for _, b in V.blocks(update_at(p.solver, 0, p.times[3]))])
+    assert p.solver.frame_counts == {"loaded": 1, "solved": 0}
+    assert len(F.FrameCache(cache).entries()) == 1
+    for first, second in zip(*outputs):
+        np.testing.assert_array_equal(first, second)
+
+
+def test_frame_cache_off_or_empty_in_a_plain_pipeline_writes_nothing(small_scene_dir, tmp_path,
+                                                                     monkeypatch):
+    """``off`` reads and writes nothing; empty is the application's choice, none in a plain
+    VTK pipeline (``muscle-mss run`` gives its solver its ``--cache``), even with
+    $MUSCLE_MSS_FRAME_CACHE naming a folder."""
+    from muscle_mss.app.motion_run import update_at
+    folder = tmp_path / "user"
+    monkeypatch.setenv(F.ENVIRONMENT, str(folder))
+    for value in ("off", ""):
+        p = _plain_pipeline(small_scene_dir, value)
+        update_at(p.probe, 0, p.times[1])
+        assert p.solver.frame_counts == {"loaded": 0, "solved": 1}
+    assert not folder.exists()
+    p = _plain_pipeline(small_scene_dir, str(folder))     # the check above can fail
+    update_at(p.probe, 0, p.times[1])
+    assert len(F.FrameCache(str(folder)).entries()) == 1
+
+
+def test_a_solver_fed_by_another_filter_than_the_scenes_does_not_use_the_cache(
+        small_scene_dir, tmp_path):
+    """A filter between the scene's readers and the solver makes the frame depend on more
+    than the key: the cache is not used, and the messages say why."""
+    from vtkmodules.vtkFiltersCore import vtkPassThrough
+    from muscle_mss.app.motion_run import update_at
+    from muscle_mss.filters.scene_io import vtk_messages
+    p = _plain_pipeline(small_scene_dir, str(tmp_path / "cache"))
+    between = vtkPassThrough()
+    between.SetInputConnection(p.pose.GetOutputPort(1))
+    p.solver.SetInputConnection(1, between.GetOutputPort())
+    with vtk_messages() as messages:
+        update_at(p.solver, 0, p.times[1])
+    assert "the frame cache is not used: vtkPassThrough feeds it" in messages.GetOutput()
+    assert p.solver.frame_counts == {"loaded": 0, "solved": 1}
+    assert not (tmp_path / "cache").exists()

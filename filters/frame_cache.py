@@ -2,14 +2,18 @@
 (DESIGN §6 "Frame cache").
 
 A frame (what the MSS Collision Solver computes at one time) is a pure function of the scene,
-every property of the six filters and the time, so it is stored under a digest of exactly those
-and of the numerics' version, and any run that asks for the same frame loads it instead of
-solving it again (``muscle-mss run`` / ``demo`` / ``study``, the batch, a resumed run).
+the properties of the solver and of the filters before it, and the time, so it is stored under a
+digest of exactly those and of the numerics' version, and any run that asks for the same frame
+loads it instead of solving it again (``muscle-mss run`` / ``demo`` / ``study``, the batch, a
+resumed run, the solver in ParaView through its ``FrameCache`` property:
+:data:`FRAME_CACHE_PROPERTY`).
 
 * **Key** (:func:`frame_key`): the cache format; the package version and a digest of the
   ``.py`` files of ``core/`` and ``filters/`` (the numerics); a digest of the bytes of every
-  scene file the run reads (:func:`scene_digest`); every property of the six filters with its
-  effective value, defaults included (:func:`filter_properties`); the time (its exact float).
+  scene file the run reads (:func:`scene_digest`); every property of the Fibre Resampler, the
+  Spring Builder, the Rigid Pose Transform and the solver with its effective value, defaults
+  included, but ``FrameCache`` (:func:`filter_properties`); the time (its exact float). The
+  same scene and properties give the same key in ``muscle-mss run`` and in ParaView.
   Not the Python, Numba or NumPy version: the venv and ParaView's Python share frames (their
   results agree to rounding, not bitwise); each entry records the runtime that solved it.
 * **Entry** (one file ``<key digest>.frame``): a magic line, the length of a JSON header, the
@@ -25,7 +29,10 @@ solving it again (``muscle-mss run`` / ``demo`` / ``study``, the batch, a resume
   removed after each write.
 * **Where**: ``--cache DIR`` or ``--cache off`` (nothing read or written), else the
   environment variable :data:`ENVIRONMENT` (a folder or ``off``; the test suite turns it off),
-  else ``$XDG_CACHE_HOME/muscle-mss/frames`` (``~/.cache/muscle-mss/frames``).
+  else ``$XDG_CACHE_HOME/muscle-mss/frames`` (``~/.cache/muscle-mss/frames``). The solver's
+  ``FrameCache`` property: a folder, ``off``, or empty: the application's choice (in ParaView
+  the one above without ``--cache``; in a plain VTK pipeline none, ``muscle-mss run`` gives
+  its solver its ``--cache``).
 
 Not cached: a solve whose answer depends on more than its key (the solver's ``WarmStart``, which
 starts from the frame solved before; termination ``time budget``, which stops on the clock).
@@ -48,6 +55,8 @@ import zipfile
 
 import numpy as np
 
+from muscle_mss.core.properties import Property
+
 FORMAT = 1
 """The entry format and key layout; a change starts new keys."""
 MAGIC = b"muscle-mss frame\n"
@@ -61,6 +70,21 @@ OFF = "off"
 STALE_TEMPORARY_SECONDS = 3600.0
 """A temporary file older than this was left by a writer that was killed: removed."""
 _PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
+
+
+FRAME_CACHE_PROPERTY = Property(
+    "FrameCache", "string", "",
+    "Where solved frames are kept and looked up: a frame solved before with the same scene "
+    "files, the same properties of this filter and of the filters before it, and the same time "
+    "is loaded instead of solved (from the frames muscle-mss run or demo solved, too). Empty "
+    "(the default): the user's frame cache, $MUSCLE_MSS_FRAME_CACHE if set, else "
+    "~/.cache/muscle-mss/frames, where muscle-mss run keeps its frames (in a plain VTK "
+    "pipeline outside ParaView: none); a folder; or off: every frame solved, nothing written. "
+    "Not used with WarmStart or termination 'time budget', nor when the solver's inputs do "
+    "not come from a scene folder's readers through the Muscle MSS filters.",
+    group="Frame cache")
+"""The MSS Collision Solver's ``FrameCache`` row (not in the key: where a frame is kept does
+not change it)."""
 
 
 class DamagedEntry(Exception):
@@ -141,23 +165,44 @@ def scene_digest(folder) -> str:
     return digest.hexdigest()
 
 
+KEYED_FILTERS = ("FibreResampler", "SpringBuilder", "RigidPoseTransform", "MSSCollisionSolver")
+"""The filters whose properties determine a frame: the solver and those upstream of it. The
+MVC Surface Deformer and the Volume-Error Probe run after the solve on every frame, loaded or
+solved, so theirs are not in the key (and the solver in ParaView cannot see them)."""
+NOT_KEYED = frozenset({"FrameCache"})
+"""Properties that do not change a frame: where it is kept."""
+
+
+def filter_name(f) -> str:
+    """The name of the filter class ``f`` is or derives from (the ParaView proxy and the
+    application's cached solver are subclasses): its name in the key."""
+    from . import FILTER_NAMES
+    return next((c.__name__ for c in type(f).__mro__ if c.__name__ in FILTER_NAMES),
+                type(f).__name__)
+
+
 def filter_properties(filters) -> dict:
-    """``{filter class: {property: value}}``: every property of ``filters`` (the six, in
-    pipeline order) with its effective value, an enum as its choice's text, a number as
-    stored (a float's repr is exact)."""
+    """``{filter: {property: value}}``: every property of those of ``filters`` in
+    :data:`KEYED_FILTERS` but :data:`NOT_KEYED` with its effective value, an enum as its
+    choice's text, a number as stored (a float's repr is exact)."""
     table = {}
     for f in filters:
+        name = filter_name(f)
+        if name not in KEYED_FILTERS:
+            continue
         values = {}
         for prop in f.PROPERTIES:
+            if prop.name in NOT_KEYED:
+                continue
             value = f.choice(prop.name) if prop.kind == "enum" else f.value(prop.name)
             values[prop.name] = value.item() if isinstance(value, np.generic) else value
-        table[type(f).__name__] = values
+        table[name] = values
     return table
 
 
 def frame_key(scene: str, filters, time: float) -> dict:
     """The key of the frame at ``time`` of the scene whose :func:`scene_digest` is ``scene``
-    through ``filters`` (the six filters, their properties as they are now)."""
+    through ``filters`` (the pipeline's filters, their properties as they are now)."""
     return {"format": FORMAT, "numerics": numerics_version(), "scene": scene,
             "properties": filter_properties(filters), "time": float(time).hex()}
 
@@ -357,14 +402,14 @@ class FrameCache:
 
 class SolverFrames:
     """A :class:`FrameCache` bound to a pipeline: what the MSS Collision Solver asks at each
-    solve (:meth:`load`, :meth:`save` by time), keyed by the scene's files (hashed once) and
-    the six ``filters``' properties as they are at that moment (a study changes the solver's
+    solve (:meth:`load`, :meth:`save` by time), keyed by the scene's files (hashed once, or
+    their digest ``scene``) and the ``filters``' properties as they are at that moment (a study changes the solver's
     between solves). Counts ``loaded``, ``solved`` (saved), ``damaged`` and ``uncached``
     (solves whose answer depends on more than the key)."""
 
-    def __init__(self, cache: FrameCache, scene_folder, filters):
+    def __init__(self, cache: FrameCache, scene_folder, filters, scene: str | None = None):
         self.cache = cache
-        self.scene = scene_digest(scene_folder)
+        self.scene = scene_digest(scene_folder) if scene is None else scene
         self.filters = tuple(filters)
         self.loaded = self.solved = self.uncached = 0
         self._told = False
