@@ -95,8 +95,8 @@ def build_pipeline(scene_folder, show=True, settings=None):
     from muscle_mss.filters.scene_io import load_scene
     # the checks ParaView's readers do not make (a block whose .vtp is missing or cut, an empty
     # motion.csv cell read as 0), as muscle-mss validate makes them: refused before building
+    load_plugin()       # first: it chooses how the kernels run their threads in ParaView
     scene = load_scene(scene_folder)
-    load_plugin()
     path = lambda name: os.path.join(scene_folder, name)  # noqa: E731  (kept relative if given so)
     p = {}
     p["muscles"] = simple.XMLMultiBlockDataReader(registrationName="muscles.vtm",
@@ -158,10 +158,7 @@ def show_pipeline(p):
     _rescale_every_time(fibres, "fibre_strain")
     fibres.LineWidth = 2.0
     simple.Hide(fibre_port, view)  # inside the muscles; switch on with the eye in the browser
-    view.CameraPosition = [900.0, -1400.0, 300.0]
-    view.CameraFocalPoint = [0.0, 0.0, -250.0]
-    view.CameraViewUp = [0.0, 0.0, 1.0]
-    view.ResetCamera()
+    frame_muscles(p, view)
 
     layout = simple.GetLayout(view)
     chart = simple.CreateView("XYChartView")
@@ -169,12 +166,44 @@ def show_pipeline(p):
     table = simple.Show(simple.OutputPort(p["MSS Collision Solver"], 1), chart)
     table.UseIndexForXAxis = 0
     table.XArrayName = A.ITERATION
-    table.SeriesVisibility = convergence_series(p["MSS Collision Solver"])
+    series = convergence_series(p["MSS Collision Solver"])
+    table.SeriesVisibility = series
+    # the muscle's name alone: a narrower legend beside the plot
+    table.SeriesLabel = [text for name in series
+                         for text in (name, name[len(A.MEAN_DISPLACEMENT):])]
     chart.LeftAxisTitle = "mean displacement (mm)"
     chart.BottomAxisTitle = A.ITERATION
-    chart.LeftAxisLogScale = 1
+    # linear: a quasi-static solve's last rows reach 0 mm, which a log axis cannot show
+    # (ParaView covers the chart with "One or more plot series crosses or contains an axis
+    # origin")
+    chart.LeftAxisLogScale = 0
+    chart.LegendLocation = LEGEND_LOCATION
     simple.SetActiveView(view)
     return view, chart
+
+
+LEGEND_LOCATION = "Right"
+"""Where the charts' legends go: beside the plot, right of it, not over the curves."""
+
+
+def frame_muscles(p, view):
+    """Point the camera from the front-right at the deformed muscles at the time shown and
+    zoom to them (the bones reach far beyond them)."""
+    from paraview import simple
+    probe = p["Volume-Error Probe"]
+    probe.UpdatePipeline(simple.GetAnimationScene().AnimationTime)
+    bounds = probe.GetDataInformation(0).GetBounds()
+    # the view's representations updated, as ResetCamera() without bounds does: the colour
+    # ranges that follow the time rescale from them (without, a state saved after moving the
+    # time kept the first time's range)
+    view.Update()
+    view.CameraPosition = [900.0, -1400.0, 300.0]
+    view.CameraFocalPoint = [0.0, 0.0, -250.0]
+    view.CameraViewUp = [0.0, 0.0, 1.0]
+    if bounds[0] <= bounds[1]:
+        view.ResetCamera(*bounds)
+    else:
+        view.ResetCamera()
 
 
 FIBRE_STRAIN_OVER_TIME = "Mean fibre strain over time"
@@ -212,6 +241,7 @@ def fibre_strain_chart(p, muscles):
     lines.SeriesLabel = [text for pair in zip(series, muscles) for text in pair]
     chart.LeftAxisTitle = f"mean {A.FIBRE_STRAIN} (length / rest length - 1)"
     chart.BottomAxisTitle = "time (s)"
+    chart.LegendLocation = LEGEND_LOCATION
     p[FIBRE_STRAIN_OVER_TIME] = plot
     simple.SetActiveView(view)
     return chart
@@ -245,8 +275,10 @@ def main(argv=None) -> int:
     from muscle_mss.filters.scene_io import load_scene
     scene, state = argv
     motion = load_scene(scene).motion
-    build_pipeline(scene)
+    p = build_pipeline(scene)
     simple.GetAnimationScene().AnimationTime = motion.times[farthest_pose_index(motion)]
+    simple.Render()     # pvpython's first render resets the camera to every object shown
+    frame_muscles(p, simple.GetActiveView())
     simple.Render()
     simple.SaveState(state)
     print(f"saved {state}")

@@ -147,6 +147,7 @@ def test_saved_state_hides_fibres_charts_every_muscle_and_follows_the_colour_ran
     assert abs(second[1] - first[1]) > 0.2 * first[1]  # the two times differ enough to tell
     for colours, data in shown["ranges"]:
         assert colours == pytest.approx(data, rel=1e-6, abs=1e-9)
+    assert_charts_readable(shown)
 
 
 def test_gui_opens_the_state_and_shows_the_muscles(small_scene, small_scene_dir, tmp_path):
@@ -294,6 +295,48 @@ def test_shipped_demo_state_opens_the_demo_walk(tmp_path):
     assert [labels[s] for s in fibre_strain_series(MUSCLE_NAMES)] == list(MUSCLE_NAMES)
     assert len(shown["strain_values"]) == len(MUSCLE_NAMES)
     assert all(len(v) == len(scene.motion.times) for v in shown["strain_values"])
+    assert_charts_readable(shown)
+
+
+def assert_charts_readable(shown):
+    """No chart has a log axis over a value <= 0 (ParaView would cover it with "One or more
+    plot series crosses or contains an axis origin"), and every legend is beside its plot."""
+    for chart, axes in shown["axes"].items():
+        for axis in ("left", "bottom"):
+            log, least = axes[axis]
+            assert not log or least > 0, (chart, axis, least)
+        assert axes["legend"] == "Right", chart
+
+
+def test_the_solver_in_paraview_loads_every_frame_a_cli_run_solved(small_scene_dir, tmp_path):
+    """A CLI run of the small scene fills a frame cache; the plugin's pipeline with the same
+    properties in pvpython takes every frame from it (the solver's counts), FrameCache naming
+    the folder or left empty with $MUSCLE_MSS_FRAME_CACHE naming it (an empty FrameCache in
+    ParaView is the user's frame cache, the CLI's default); ``off`` solves and writes
+    nothing."""
+    import subprocess
+    import sys
+    from muscle_mss.filters.frame_cache import FrameCache
+    cache = tmp_path / "cache"
+    cli = subprocess.run([sys.executable, "-m", "muscle_mss.app.cli", "run", str(small_scene_dir),
+                          str(tmp_path / "out"), "--iterations", "20", "--write", "surfaces",
+                          "--cache", str(cache)], capture_output=True, text=True, timeout=900)
+    assert cli.returncode == 0, cli.stderr[-3000:]
+    assert "frame cache: 0 of 21 frames loaded, 21 solved" in cli.stdout
+    named = run_script("pvpython", "frame_cache_pipeline.py", small_scene_dir, 20, cache, 0)
+    assert named["counts"] == {"loaded": 21, "solved": 0}
+    default = run_script("pvpython", "frame_cache_pipeline.py", small_scene_dir, 20, "-", 2,
+                         MUSCLE_MSS_FRAME_CACHE=cache)
+    assert default["frame_cache"] == "" and default["counts"] == {"loaded": 2, "solved": 0}
+    np.testing.assert_allclose(default["volume"], named["volume"][:2], rtol=0, atol=1e-9)
+    assert len(FrameCache(str(cache)).entries()) == 21
+    other = tmp_path / "other"
+    off = run_script("pvpython", "frame_cache_pipeline.py", small_scene_dir, 20, "off", 1,
+                     MUSCLE_MSS_FRAME_CACHE=other)
+    assert off["counts"] == {"loaded": 0, "solved": 1} and not other.exists()
+    # the plugin runs the kernels on workqueue: omp beside ParaView's OpenMP ran 5-6x slower
+    assert named["threading_layer"] == "workqueue"
+    np.testing.assert_allclose(off["volume"], named["volume"][:1], rtol=0, atol=1e-5)
 
 
 def _digest(path) -> str:
