@@ -1,6 +1,7 @@
-"""The scene folder ``muscle-mss demo`` writes, kept apart from a scene the user put or edited
-there: the demo records the SHA-256 of each file it wrote, and a later demo replaces that folder
-silently only while it holds just those files as written."""
+"""The demo scenes (the thigh's walk, the elbow's flexion) and the scene folder ``muscle-mss
+demo`` writes, kept apart from a scene the user put or edited there: the demo records the
+SHA-256 of each file it wrote, and a later demo replaces that folder silently only while it
+holds just those files as written."""
 from __future__ import annotations
 
 import hashlib
@@ -8,6 +9,7 @@ import os
 import sys
 
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.scene import Scene
 
 
 DEMO_SCENE_RECORD = ".muscle-mss-demo-scene"
@@ -89,3 +91,40 @@ def record_demo_scene(folder: str, files) -> None:
     except OSError as err:
         raise MuscleMSSError(f"cannot write {os.path.join(folder, DEMO_SCENE_RECORD)}: "
                              f"{err.strerror or err}") from None
+
+
+REGION_THIGH, REGION_ARM = "thigh", "arm"
+DEMO_REGIONS = (REGION_THIGH, REGION_ARM)
+"""The demo scenes: the thigh's walk (the default) and the elbow's flexion."""
+DEMO_SIZES = ("full", "small")
+"""The demo scene's sizes (``demo_scene(size)``): the full scene (the default) and a quick one."""
+
+
+def demo_region_scene(region: str, size: str) -> Scene:
+    """The demo scene of ``region`` (one of :data:`DEMO_REGIONS`) at ``size``."""
+    if region == REGION_ARM:
+        from muscle_mss.core.demo.arm import demo_arm_scene
+        return demo_arm_scene(size)
+    from muscle_mss.core.demo.scene import demo_scene
+    return demo_scene(size)
+
+
+def demo_region_motion(region: str):
+    """The motion of the demo scene of ``region`` (what :func:`demo_region_scene` holds), without
+    building the scene."""
+    if region == REGION_ARM:
+        from muscle_mss.core.demo.arm import flexion_motion
+        return flexion_motion()
+    from muscle_mss.core.demo.scene import gait_motion
+    return gait_motion()
+
+
+def write_demo_scene(out: str, size: str, region: str = REGION_THIGH) -> Scene:
+    """Write the demo scene folder ``out`` of ``region`` and its ``preview.png``; return the
+    scene as read back and checked from the files."""
+    from .pictures import scene_preview
+    from muscle_mss.filters.scene_io import load_scene, write_scene
+    write_scene(demo_region_scene(region, size), out)
+    scene = load_scene(out)
+    scene_preview(scene, os.path.join(out, "preview.png"))
+    return scene

@@ -31,7 +31,7 @@ import numpy as np
 from muscle_mss.core.contacts import penetration as P
 from muscle_mss.filters import bone_sets, collision_solver
 from muscle_mss.app import motion_run, run_output
-from muscle_mss.app.cli import DEMO_REGIONS, demo_region_scene
+from muscle_mss.app.demo_folder import DEMO_REGIONS, demo_region_scene
 from muscle_mss.app.motion_run import build_pipeline, update_at
 from muscle_mss.filters.mvc_surface_deformer import weight_counts
 from muscle_mss.filters.scene_io import write_scene

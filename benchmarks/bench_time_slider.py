@@ -28,7 +28,7 @@ from bench_solver import machine, write_result  # noqa: E402
 from bench_time_point import SCENE_LABELS, sizes_and_points, spread  # noqa: E402
 
 from muscle_mss.filters import base, bone_sets  # noqa: E402
-from muscle_mss.app.cli import demo_region_scene  # noqa: E402
+from muscle_mss.app.demo_folder import demo_region_scene  # noqa: E402
 from muscle_mss.filters import vtk_arrays as V  # noqa: E402
 from muscle_mss.filters.scene_io import write_scene  # noqa: E402
 from muscle_mss.plugin.pipeline import build_pipeline, show_pipeline  # noqa: E402

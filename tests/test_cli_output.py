@@ -138,7 +138,7 @@ def test_batch_with_overwrite_replaces_the_earlier_run(small_scene, small_scene_
 
 
 def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
-    from muscle_mss.app.cli import summary_table
+    from muscle_mss.app.run_report import summary_table
     row = {"muscle": "vastus", "volume_error_pct": "1.5", "max_fibre_strain": "0.1",
            "sphere_overlap_mm": "0.01", "new_in_bone_depth_mm": "4.7",
            "new_in_bone_depth_after_push_mm": "0.0", "in_other_muscle_depth_mm": "2.5",
@@ -170,7 +170,7 @@ def test_summary_table_shows_the_depth_in_bone_as_written_and_before_the_push():
 
 
 def test_the_table_says_how_the_fibres_follow_their_muscles_length():
-    from muscle_mss.app.cli import summary_table
+    from muscle_mss.app.run_report import summary_table
     from muscle_mss.app.study import follow_slope
     base = {"muscle": "biceps", "volume_error_pct": "1.0", "max_fibre_strain": "0.0",
             "sphere_overlap_mm": "0", "new_in_bone_depth_mm": "", "cage_drift_vertices": "0",

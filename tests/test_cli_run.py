@@ -103,7 +103,7 @@ def cut_off_pixels(path, panels=3, title_rows=45, frame=3):
 def test_poses_picture_frames_a_pose_that_swings_out_of_the_rest_box(region, tmp_path):
     from muscle_mss.core.motion import farthest_pose_index
     from muscle_mss.app import motion_run
-    from muscle_mss.app.cli import demo_region_scene
+    from muscle_mss.app.demo_folder import demo_region_scene
     from muscle_mss.app.pictures import poses_picture
     from muscle_mss.filters.scene_io import write_scene
 

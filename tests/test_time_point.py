@@ -11,7 +11,8 @@ from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.rigid_fit import rigid_fit
 from muscle_mss.filters import bone_sets, check_cache
 from muscle_mss.app import motion_run, run_output
-from muscle_mss.app.cli import main, timings_note
+from muscle_mss.app.cli import main
+from muscle_mss.app.run_report import timings_note
 
 SPACING = 3.0
 
