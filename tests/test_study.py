@@ -154,7 +154,8 @@ def test_the_report_names_the_pose_asked_with_time(small_scene_dir, tmp_path, mo
     from muscle_mss.app.cli import main
     asked = {}
 
-    def run_study(scene_folder, resolution, index=None, progress=None, asked_time=None):
+    def run_study(scene_folder, resolution, index=None, progress=None, asked_time=None,
+                  cache=None, jobs=1):
         asked.update(index=index, asked_time=asked_time)
         times = np.linspace(0.0, 1.0, 21)
         return study.Study(str(scene_folder), index, float(times[index]), resolution, [],
