@@ -321,12 +321,12 @@ def study_into(scene_folder: str, out: str, resolution=None, time=None, cache=No
 def cmd_cache(args) -> int:
     """``muscle-mss cache info|clear``: the frame cache's folder, entries, size and bound, or
     remove its entries."""
-    from muscle_mss.filters.frame_cache import FrameCache, chosen_folder
+    from muscle_mss.filters.frame_cache import FrameStore, chosen_folder
     folder = chosen_folder(args.cache)
     if folder is None:
         print("frame cache: off (--cache off or $MUSCLE_MSS_FRAME_CACHE=off)")
         return 0
-    cache = FrameCache(folder)
+    cache = FrameStore(folder)
     if args.action == "clear":
         count, size = cache.clear()
         print(f"frame cache {folder}: removed {count} entries ({size / 2 ** 20:.1f} MiB)")

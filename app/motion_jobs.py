@@ -76,15 +76,11 @@ def threads_per_worker(jobs: int) -> int:
 
 
 def serial_reason(solver) -> str | None:
-    """Why the time points must be solved one after another in one process, or None: with
-    ``WarmStart`` each starts from the one solved before it, with termination ``time budget``
-    a frame depends on the clock (and so on the threads it gets)."""
-    from muscle_mss.core.settings import TERMINATION_BUDGET
-    if solver.value("WarmStart"):
-        return "WarmStart makes a frame depend on the frame solved before it"
-    if solver.choice("Termination") == TERMINATION_BUDGET:
-        return "termination 'time budget' makes a frame depend on the threads it gets"
-    return None
+    """Why the time points must be solved one after another in one process, or None: the
+    solver's :meth:`~muscle_mss.filters.collision_solver.MSSCollisionSolver.history_dependence`
+    (a frame that starts from the one before it, or stops on the clock and so depends on the
+    threads it gets)."""
+    return solver.history_dependence()
 
 
 def can_start_workers() -> bool:

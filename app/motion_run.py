@@ -123,8 +123,8 @@ def build_pipeline(scene_folder, settings: dict | None = None,
         raise MuscleMSSError(f"{os.path.join(str(scene_folder), MOTION_FILE)} gave no time steps")
     frames = None
     if cache:
-        from muscle_mss.filters.frame_cache import FrameCache, SolverFrames
-        frames = solver.frames = SolverFrames(FrameCache(cache), scene_folder, filters)
+        from muscle_mss.filters.frame_cache import FrameStore, SolverFrames
+        frames = solver.frames = SolverFrames(FrameStore(cache), scene_folder, filters)
     return Pipeline(muscles, fibres, bones, motion, resampler, springs, pose, solver, deformer,
                     probe, times, frames)
 
@@ -301,8 +301,9 @@ def run_motion(scene_folder, out, settings=None, part=(0, 1), on_step=None,
     reading and filling the frame cache in the folder ``cache`` (None: none).
 
     ``jobs`` above 1: the time points are solved by that many worker processes, the files
-    placed here in time order, the same files (:mod:`~muscle_mss.app.motion_jobs`; not with
-    ``WarmStart`` or a time budget, nor in ParaView's Python: a note says so).
+    placed here in time order, the same files (:mod:`~muscle_mss.app.motion_jobs`; not for a
+    solver whose frames depend on the one before or on the clock, nor in ParaView's Python: a
+    note says so).
 
     ``on_step(result, done, total)`` is called after each time point (progress bars; with
     ``jobs``, as each arrives). Returns the pipeline and the summary rows in time-point order;

@@ -49,7 +49,7 @@ SPRING_ENERGIES = (SPRINGS_HOOKE, SPRINGS_COROTATIONAL)
 DEFAULT_METHOD = METHOD_QUASI_STATIC
 # The iteration cap, for both methods. The quasi-static solves of both demo motions stop at
 # their tolerance within it (at most 469 iterations at N = 20, 587 at N = 80); the paper
-# relaxation runs all of them unless its Termination says otherwise (the paper ran 500).
+# relaxation runs all of them unless its termination says otherwise (the paper ran 500).
 DEFAULT_ITERATIONS = 2000
 DEFAULT_TIME_BUDGET = 1.0               # s
 # Without a volume force the converged lattices lose 9-22 % of their volume where the posed

@@ -63,7 +63,7 @@ from . import array_names as A
 from .bone_sets import POSED_BONES as BONES, bone_depths, contact_bones, particles_in_bones
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port, reader_files
-from .frame_cache import (FRAME_CACHE_PROPERTY, KEYED_FILTERS, FrameCache, SolverFrames,
+from .frame_cache import (FRAME_CACHE_PROPERTY, KEYED_FILTERS, FrameStore, SolverFrames,
                           chosen_folder, filter_name, scene_digest)
 from .model_blocks import MODEL, MODEL_BLOCK, muscle_block
 
@@ -129,6 +129,17 @@ class MSSCollisionSolver(MuscleFilter):
             prop.field.rpartition(".")[2]:
                 self.choice(prop.name) if prop.kind == "enum" else self.value(prop.name)
             for prop in self.PROPERTIES if prop.field})
+
+    def history_dependence(self) -> str | None:
+        """Why a frame of this solver depends on more than its inputs, its properties and its
+        time (None: it does not): WarmStart starts it from the frame solved before it, the
+        termination 'time budget' stops it on the clock. The frame cache and the parallel
+        runs read it (such frames are neither stored nor spread over processes)."""
+        if self.value("WarmStart"):
+            return "WarmStart makes a frame depend on the frame solved before it"
+        if self.settings().budget is not None:
+            return "termination 'time budget' stops a solve on the clock"
+        return None
 
     def _warn_ignored_settings(self):
         """Print :func:`~muscle_mss.core.solver_properties.ignored_settings` (ParaView's output
@@ -229,7 +240,7 @@ class MSSCollisionSolver(MuscleFilter):
         if self._frames[0] != made_for:
             warn = lambda text: vtkOutputWindow.GetInstance().DisplayWarningText(  # noqa: E731
                 f"{self.LABEL}: {text}\n")
-            self._frames = (made_for, SolverFrames(FrameCache(folder, warn=warn), scene_folder,
+            self._frames = (made_for, SolverFrames(FrameStore(folder, warn=warn), scene_folder,
                                                    (*filters, self), scene=self._scene[1]))
         return self._frames[1]
 

@@ -34,8 +34,8 @@ resumed run, the solver in ParaView through its ``FrameCache`` property:
   the one above without ``--cache``; in a plain VTK pipeline none, ``muscle-mss run`` gives
   its solver its ``--cache``).
 
-Not cached: a solve whose answer depends on more than its key (the solver's ``WarmStart``, which
-starts from the frame solved before; termination ``time budget``, which stops on the clock).
+Not cached: a solve whose answer depends on more than its key (the solver's
+``history_dependence``: a warm start from the frame solved before, a time budget's clock).
 Nothing here imports VTK.
 """
 from __future__ import annotations
@@ -291,7 +291,7 @@ def decode_entry(data: bytes, key: dict) -> tuple:
     return arrays, header["scalars"]
 
 
-class FrameCache:
+class FrameStore:
     """The entries in one folder: :meth:`load`, :meth:`save`, :meth:`info`, :meth:`clear`.
     ``warn(text)`` reports a damaged entry (default: stderr); ``bound``: bytes kept at most."""
 
@@ -401,13 +401,13 @@ class FrameCache:
 
 
 class SolverFrames:
-    """A :class:`FrameCache` bound to a pipeline: what the MSS Collision Solver asks at each
+    """A :class:`FrameStore` bound to a pipeline: what the MSS Collision Solver asks at each
     solve (:meth:`load`, :meth:`save` by time), keyed by the scene's files (hashed once, or
     their digest ``scene``) and the ``filters``' properties as they are at that moment (a study changes the solver's
     between solves). Counts ``loaded``, ``solved`` (saved), ``damaged`` and ``uncached``
     (solves whose answer depends on more than the key)."""
 
-    def __init__(self, cache: FrameCache, scene_folder, filters, scene: str | None = None):
+    def __init__(self, cache: FrameStore, scene_folder, filters, scene: str | None = None):
         self.cache = cache
         self.scene = scene_digest(scene_folder) if scene is None else scene
         self.filters = tuple(filters)
@@ -415,20 +415,16 @@ class SolverFrames:
         self._told = False
 
     def cacheable(self) -> bool:
-        """Whether the solver's answer is a function of the key: not with ``WarmStart`` (it
-        starts from the frame solved before) nor termination ``time budget`` (the clock)."""
-        from muscle_mss.core.settings import TERMINATION_BUDGET
-        solver = next(f for f in self.filters
-                      if any(p.name == "WarmStart" for p in f.PROPERTIES))
-        warm = bool(solver.value("WarmStart"))
-        budget = solver.choice("Termination") == TERMINATION_BUDGET
-        if (warm or budget) and not self._told:
+        """Whether the solver's answer is a function of the key (the solver's
+        ``history_dependence``: not when it starts from the frame solved before, nor when it
+        stops on the clock)."""
+        solver = next(f for f in self.filters if hasattr(f, "history_dependence"))
+        reason = solver.history_dependence()
+        if reason and not self._told:
             self._told = True
-            self.cache.warn("note: the frame cache is not used: "
-                            + ("WarmStart makes a frame depend on the frame solved before it"
-                               if warm else "termination 'time budget' stops on the clock")
-                            + ", so a stored frame would not be the one solved now")
-        return not (warm or budget)
+            self.cache.warn(f"note: the frame cache is not used: {reason}, so a stored frame "
+                            "would not be the one solved now")
+        return reason is None
 
     def key(self, time: float) -> dict:
         return frame_key(self.scene, self.filters, time)
@@ -468,4 +464,4 @@ def frames_for(option, scene_folder, filters):
     """A :class:`SolverFrames` for the cache ``option`` chooses (:func:`chosen_folder`), or
     None when it is off."""
     folder = chosen_folder(option)
-    return None if folder is None else SolverFrames(FrameCache(folder), scene_folder, filters)
+    return None if folder is None else SolverFrames(FrameStore(folder), scene_folder, filters)

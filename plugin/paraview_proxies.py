@@ -130,7 +130,7 @@ def make_proxy(filter_class):
         return filter_class.RequestData(self, request, in_info, out_info)
     namespace["RequestData"] = request_data
     if hasattr(filter_class, "default_frame_cache"):
-        # in ParaView an empty FrameCache is the user's frame cache (muscle-mss run's default)
+        # in ParaView an empty frame cache property is the user's frame cache (muscle-mss run's default)
         namespace["default_frame_cache"] = staticmethod(lambda: chosen_folder(None))
 
     def timestep_values(self):

@@ -100,7 +100,7 @@ def test_one_byte_of_any_scene_file_changes_the_key(small_scene_dir, tmp_path):
 
 def test_an_entry_round_trips_and_a_wrong_key_or_a_flipped_byte_is_refused(tmp_path):
     warnings = []
-    cache = F.FrameCache(str(tmp_path), warn=warnings.append)
+    cache = F.FrameStore(str(tmp_path), warn=warnings.append)
     key = {"frame": 1}
     arrays = {"positions": np.arange(12.0).reshape(4, 3), "flag": np.asarray(np.True_)}
     assert cache.save(key, arrays, {"method": "quasi-static", "passes": 3})
@@ -120,7 +120,7 @@ def test_an_entry_round_trips_and_a_wrong_key_or_a_flipped_byte_is_refused(tmp_p
 
 
 def test_the_bound_keeps_the_most_recently_used_entries(tmp_path):
-    cache = F.FrameCache(str(tmp_path), bound=10 ** 9)
+    cache = F.FrameStore(str(tmp_path), bound=10 ** 9)
     payload = {"a": np.zeros(1000)}
     cache.save({"k": 0}, payload, {})
     os.utime(cache.path({"k": 0}), (0, 0))
@@ -136,8 +136,8 @@ def test_the_bound_keeps_the_most_recently_used_entries(tmp_path):
 
 WRITER = textwrap.dedent("""
     import sys, numpy as np
-    from muscle_mss.filters.frame_cache import FrameCache
-    cache = FrameCache(sys.argv[1])
+    from muscle_mss.filters.frame_cache import FrameStore
+    cache = FrameStore(sys.argv[1])
     arrays = {"positions": np.linspace(0.0, 1.0, 300000)}
     for _ in range(20):
         assert cache.save({"frame": "same"}, arrays, {"method": "m"})
@@ -149,8 +149,8 @@ def test_two_writers_at_once_leave_one_valid_entry(tmp_path):
                for _ in range(2)]
     assert [w.wait(timeout=120) for w in writers] == [0, 0]
     assert sorted(os.listdir(tmp_path)) == [os.path.basename(
-        F.FrameCache(str(tmp_path)).path({"frame": "same"}))]
-    arrays, scalars = F.FrameCache(str(tmp_path)).load({"frame": "same"})
+        F.FrameStore(str(tmp_path)).path({"frame": "same"}))]
+    arrays, scalars = F.FrameStore(str(tmp_path)).load({"frame": "same"})
     np.testing.assert_array_equal(arrays["positions"], np.linspace(0.0, 1.0, 300000))
 
 
@@ -195,7 +195,7 @@ def test_the_same_run_in_another_process_loads_every_frame(first_run, small_scen
                                                            tmp_path):
     out, cache, text = first_run
     assert "frame cache: 0 of 21 frames loaded, 21 solved" in text
-    entries = len(F.FrameCache(str(cache)).entries())
+    entries = len(F.FrameStore(str(cache)).entries())
     assert entries == 21
     second = subprocess.run(
         [sys.executable, "-m", "muscle_mss.app.cli", "run", str(small_scene_dir),
@@ -203,7 +203,7 @@ def test_the_same_run_in_another_process_loads_every_frame(first_run, small_scen
         capture_output=True, text=True, timeout=600)
     assert second.returncode == 0, second.stderr
     assert "frame cache: 21 of 21 frames loaded, 0 solved" in second.stdout
-    assert len(F.FrameCache(str(cache)).entries()) == entries
+    assert len(F.FrameStore(str(cache)).entries()) == entries
     assert_same_outputs(out, tmp_path / "out", solved_again=False)
 
 
@@ -213,7 +213,7 @@ def test_a_damaged_entry_is_reported_and_solved_again(first_run, small_scene_dir
     out, cache, _ = first_run
     copy = tmp_path / "cache"
     shutil.copytree(cache, copy)
-    victim = F.FrameCache(str(copy)).entries()[0][2]
+    victim = F.FrameStore(str(copy)).entries()[0][2]
     size = os.path.getsize(victim)
     with open(victim, "r+b") as f:
         f.truncate(size // 2)
@@ -241,10 +241,10 @@ def test_cache_off_writes_nothing(small_scene_dir, tmp_path, monkeypatch, capsys
     assert "frame cache" not in capsys.readouterr().out and not frames.exists()
     # without --cache the user's cache folder is used: the check above can fail
     assert main(["run", str(small_scene_dir), str(tmp_path / "on"), *RUN, "--time", "0.5"]) == 0
-    assert len(F.FrameCache(str(frames)).entries()) == 1
+    assert len(F.FrameStore(str(frames)).entries()) == 1
     assert main(["cache", "info"]) == 0
     assert f"frame cache {frames}: 1 entries" in capsys.readouterr().out
-    assert main(["cache", "clear"]) == 0 and not F.FrameCache(str(frames)).entries()
+    assert main(["cache", "clear"]) == 0 and not F.FrameStore(str(frames)).entries()
 
 
 def test_an_interrupted_run_resumes_to_the_uninterrupted_outputs(first_run, small_scene_dir,
@@ -295,7 +295,7 @@ def test_the_solvers_frame_cache_property_loads_what_it_stored_in_a_new_pipeline
         p = _plain_pipeline(small_scene_dir, cache)
         outputs.append([V.points_of(b) for _, b in V.blocks(update_at(p.solver, 0, p.times[3]))])
     assert p.solver.frame_counts == {"loaded": 1, "solved": 0}
-    assert len(F.FrameCache(cache).entries()) == 1
+    assert len(F.FrameStore(cache).entries()) == 1
     for first, second in zip(*outputs):
         np.testing.assert_array_equal(first, second)
 
@@ -315,7 +315,7 @@ def test_frame_cache_off_or_empty_in_a_plain_pipeline_writes_nothing(small_scene
     assert not folder.exists()
     p = _plain_pipeline(small_scene_dir, str(folder))     # the check above can fail
     update_at(p.probe, 0, p.times[1])
-    assert len(F.FrameCache(str(folder)).entries()) == 1
+    assert len(F.FrameStore(str(folder)).entries()) == 1
 
 
 def test_a_solver_fed_by_another_filter_than_the_scenes_does_not_use_the_cache(

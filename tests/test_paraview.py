@@ -316,7 +316,7 @@ def test_the_solver_in_paraview_loads_every_frame_a_cli_run_solved(small_scene_d
     nothing."""
     import subprocess
     import sys
-    from muscle_mss.filters.frame_cache import FrameCache
+    from muscle_mss.filters.frame_cache import FrameStore
     cache = tmp_path / "cache"
     cli = subprocess.run([sys.executable, "-m", "muscle_mss.app.cli", "run", str(small_scene_dir),
                           str(tmp_path / "out"), "--iterations", "20", "--write", "surfaces",
@@ -329,7 +329,7 @@ def test_the_solver_in_paraview_loads_every_frame_a_cli_run_solved(small_scene_d
                          MUSCLE_MSS_FRAME_CACHE=cache)
     assert default["frame_cache"] == "" and default["counts"] == {"loaded": 2, "solved": 0}
     np.testing.assert_allclose(default["volume"], named["volume"][:2], rtol=0, atol=1e-9)
-    assert len(FrameCache(str(cache)).entries()) == 21
+    assert len(FrameStore(str(cache)).entries()) == 21
     other = tmp_path / "other"
     off = run_script("pvpython", "frame_cache_pipeline.py", small_scene_dir, 20, "off", 1,
                      MUSCLE_MSS_FRAME_CACHE=other)
