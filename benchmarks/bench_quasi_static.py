@@ -17,12 +17,18 @@ Table 3, each scene's motion (thigh walk 21 time points, elbow 13; N ``--walk-si
 ``--ratio``) solved in time order cold (each from its posed state) and warm (from the last
 solution carried by the pose change): seconds, iterations, converged, and how far the two
 answers are apart at the most flexed pose.
+Table 4 (``--levers``), per scene, pose and N: the contacts between muscles in the
+preconditioner off (the solver before them) and on (the default): iterations, seconds of the
+solver filter's first update of the pose, the ratio to the paper's 500 relaxation iterations on
+the same pose in the same run, distance to a 10x tighter solve, energy and distance against the
+solve with them off, volume error, the muscle pairs left overlapping.
 Machine and load in the tables; written to benchmarks/results/ (``--out``).
 
     python benchmarks/bench_quasi_static.py [--scenes thigh arm] [--sizes 20 80]
         [--ratio 0.1] [--sweep 0 0.001 0.003 0.01 0.03 0.1] [--cap 2000] [--walk-cap 2000]
         [--[no-]fibre-shortening] [--springs Hooke|co-rotational] [--contact-weight 1.0]
-        [--walk-sizes 20 80] [--walk-modes cold warm] [--out quasi_static.md]
+        [--walk-sizes 20 80] [--walk-modes cold warm] [--[no-]table1] [--[no-]levers]
+        [--out quasi_static.md]
 
 Every option defaults to the solver's default (the model a user gets).
 """
@@ -152,6 +158,41 @@ def pose_row(model, bones, solids, prepared, args, paper_model):
             float(np.median(share)), float(np.max(share)), os.getloadavg()[0])
 
 
+def first_update(model, bones, solids, settings):
+    """A solve as the solver filter's first update of a pose does it, its preparation (the
+    particle order, the factorisation, the columns of its inverse) timed with it:
+    ``(result, seconds)``."""
+    tick = time.perf_counter()
+    result = S.solve(model, Bones(bones, solids), settings, prepared=prepare(model))
+    return result, time.perf_counter() - tick
+
+
+def lever_rows(model, bones, solids, args, paper_model):
+    """Table 4's rows of one pose: the quasi-static solve without and with the contacts in its
+    preconditioner (each a first update), the second's distance to a 10x tighter solve, and the
+    paper's 500 relaxation iterations on the same pose in the same run."""
+    paper, paper_seconds = first_update(paper_model, bones, solids, SolverSettings.build(
+        method=METHOD_RELAXATION, iterations=500, connective_tissue=0.0, tissue_along=1.0,
+        fibre_shortening=False))
+    rows, before = [], None
+    for on in (False, True):
+        settings = chosen(args, iterations=args.cap, connective_tissue=args.ratio,
+                          contact_preconditioner=on)
+        result, seconds = first_update(model, bones, solids, settings)
+        tight, _ = first_update(model, bones, solids, chosen(
+            args, iterations=3 * args.cap, tolerance=DEFAULT_TOLERANCE / 10,
+            connective_tissue=args.ratio, contact_preconditioner=on))
+        prepared = prepare(model)
+        before = before or result
+        rows.append((on, result.iterations, seconds, seconds / paper_seconds, result.converged,
+                     *distance(result.positions, tight.positions),
+                     100.0 * (result.energy[-1] / before.energy[-1] - 1.0),
+                     *distance(result.positions, before.positions),
+                     *cage_volume_error(prepared, result.positions),
+                     int(result.muscle_pairs[-1]), paper_seconds, os.getloadavg()[0]))
+    return rows
+
+
 def sweep_rows(model, bones, solids, prepared, args):
     """Table 2's rows of one pose, the first ratio being the reference for the distances."""
     rows, untethered = [], None
@@ -201,7 +242,7 @@ def walk_rows(name, scene, folder, args, flexed_time, n):
 
 def main(args):
     yes = {True: "yes", False: "no"}
-    table1, table2, walks = [], [], []
+    table1, table2, walks, table4 = [], [], [], []
     for name, scene, poses in scenes(args.scenes):
         folder = tempfile.mkdtemp(prefix=f"bench_qs_{name}_")
         write_scene(scene, folder)
@@ -213,9 +254,14 @@ def main(args):
                 prepared = prepare(model)
                 S.solve(model, Bones(bones, solids), quasi_static(iterations=2),
                         prepared=prepared)        # compiled, warm
-                table1.append((name, n, label, t, *pose_row(model, bones, solids, prepared,
-                                                             args, paper_model)))
-                print(table1[-1], flush=True)
+                if args.table1:
+                    table1.append((name, n, label, t, *pose_row(model, bones, solids,
+                                                                 prepared, args, paper_model)))
+                    print(table1[-1], flush=True)
+                if args.levers:
+                    for row in lever_rows(model, bones, solids, args, paper_model):
+                        table4.append((name, n, label, *row))
+                        print(table4[-1], flush=True)
                 if n == 20 and args.sweep:
                     for row in sweep_rows(model, bones, solids, prepared, args):
                         table2.append((name, label, *row))
@@ -274,6 +320,26 @@ def main(args):
             for n, mode, count, sec, slowest, it, median, most, conv, load in rows:
                 lines.append(f"| {scene} | {n} | {mode} | {count} | {sec:.1f} | {slowest:.1f} "
                              f"| {it} | {median} / {most} | {conv} | {load:.2f} | {gap} |")
+    if table4:
+        lines += ["", "Table 4: the contacts between muscles in the preconditioner "
+                  "(docs/solver-notes.md, \"Contacts in the preconditioner\"), off (the solver "
+                  "before) and on (the default), each pose's solve as the solver filter's first "
+                  "update (preparation included), the defaults otherwise. x paper: its seconds "
+                  "over the paper's 500 relaxation iterations on the same pose in the same run "
+                  "(their seconds in the last column). To tighter: to the same solve at "
+                  f"Tolerance {DEFAULT_TOLERANCE / 10} mm. Energy and distance against the "
+                  "solve with the preconditioner off (mean / max mm, after the final passes); "
+                  "cage volume error mean / max %; muscle pairs overlapping at the end.", "",
+                  "| scene | N | pose | contacts in preconditioner | iterations | seconds | "
+                  "x paper | converged | to tighter | energy vs off % | to off | "
+                  "cage volume error % | muscle pairs | paper 500 it. s | load |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for (scene, n, label, on, it, sec, ratio, conv, tm, tx, energy, om, ox, vm, vx,
+             pairs, paper, load) in table4:
+            lines.append(f"| {scene} | {n} | {label} | {'on' if on else 'off'} | {it} | "
+                         f"{sec:.2f} | {ratio:.1f} | {yes[conv]} | {tm:.3f} / {tx:.2f} | "
+                         f"{energy:+.2f} | {om:.2f} / {ox:.1f} | {vm:.2f} / {vx:.2f} | "
+                         f"{pairs} | {paper:.2f} | {load:.2f} |")
     write_result(lines, args.out)
 
 
@@ -299,6 +365,10 @@ if __name__ == "__main__":
                         help="particles per fibre of Table 3's motions")
     parser.add_argument("--walk-modes", nargs="+", choices=("cold", "warm"),
                         default=["cold", "warm"], help="Table 3's starts")
+    parser.add_argument("--table1", action=argparse.BooleanOptionalAction, default=True,
+                        help="Table 1 (the tissue's effect on each pose)")
+    parser.add_argument("--levers", action=argparse.BooleanOptionalAction, default=True,
+                        help="Table 4 (the contacts in the preconditioner, off and on)")
     parser.add_argument("--out", default="quasi_static.md",
                         help="file name in benchmarks/results/")
     main(parser.parse_args())

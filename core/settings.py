@@ -153,12 +153,17 @@ class QuasiStaticSettings:
     """What only the quasi-static method reads: its tolerance (mm, the largest particle move of
     a quasi-Newton step), the contact stiffness (a multiple of the stiffest particle's spring
     sum; None: the spring energy's, :data:`DEFAULT_CONTACT_WEIGHTS`), the number of L-BFGS
-    pairs kept and the spring energy (one of :data:`SPRING_ENERGIES`)."""
+    pairs kept, the spring energy (one of :data:`SPRING_ENERGIES`) and whether the contacts
+    between muscles enter the preconditioner
+    (:mod:`~muscle_mss.core.quasi_static.contact_preconditioner`: a third to a half fewer
+    iterations, but no fewer seconds yet on two cores, so off by default;
+    docs/solver-notes.md, "Contacts in the preconditioner")."""
 
     tolerance: float = DEFAULT_TOLERANCE
     contact_weight: float | None = None
     history: int = DEFAULT_HISTORY
     springs: str = DEFAULT_SPRINGS
+    contact_preconditioner: bool = False
 
     @property
     def weight(self) -> float:

@@ -257,8 +257,8 @@ def field_value(settings: SolverSettings, field: str):
 
 def check_settings(settings: SolverSettings) -> None:
     """Raise :class:`MuscleMSSError` naming the first setting outside its row's choices or
-    range (a whole number for a count, finite), or an L-BFGS ``history`` or ``contact_weight``
-    (settings with no property) out of theirs."""
+    range (a whole number for a count, finite), or an L-BFGS ``history``, ``contact_weight``
+    or ``contact_preconditioner`` (settings with no property) out of theirs."""
     for prop in ROW_OF_FIELD.values():
         value = field_value(settings, prop.field)
         problem = None
@@ -278,6 +278,10 @@ def check_settings(settings: SolverSettings) -> None:
     if not (isinstance(history, int) and history >= 0):
         raise MuscleMSSError(f"quasi-static history is {history!r}; it must be a whole number, "
                              "0 or more")
+    if not isinstance(settings.quasi_static.contact_preconditioner, bool):
+        raise MuscleMSSError("quasi-static contact_preconditioner is "
+                             f"{settings.quasi_static.contact_preconditioner!r}; it must be "
+                             "True or False")
     weight = settings.quasi_static.weight
     if not (weight > 0.0 and math.isfinite(weight)):
         raise MuscleMSSError(f"quasi-static contact weight is {weight}; it must be finite and "

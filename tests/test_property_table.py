@@ -53,7 +53,8 @@ def test_every_solver_setting_but_the_internal_ones_has_a_row():
                 yield from paths(value, f"{prefix}{f.name}.")
             else:
                 yield prefix + f.name
-    internal = {"quasi_static.contact_weight", "quasi_static.history"}
+    internal = {"quasi_static.contact_weight", "quasi_static.history",
+                "quasi_static.contact_preconditioner"}
     assert set(paths(SolverSettings())) - internal == {p.field for p in FIELD_ROWS}
 
 

@@ -474,19 +474,15 @@ def test_solid_bones_are_checked():
         Q.solve(model, S.Bones(solids=BoneSolids(fields, np.eye(3, 4)[None], -np.ones(1))))
 
 
-def test_preconditioner_solves_the_spring_matrix_with_tissue_and_volume_stiffness():
-    """The compiled banded solve of every muscle's factor at once is ``A^-1`` of the dense spring
-    Laplacian plus the tissue on the free particles (two muscles of different sizes and
-    bandwidths), and the initial inverse Hessian adds each muscle's rank-one volume stiffness
-    (Sherman-Morrison)."""
-    from muscle_mss.core.quasi_static.preconditioner import (InitialInverseHessian,
-                                                             model_springs, preconditioner)
+def two_muscles():
+    """:func:`chain_on_a_ball`'s chain and a 3 x 2 x 9 lattice beside it (ends fixed, varied
+    spring stiffness): two muscles of different sizes and bandwidths."""
     first, _ = chain_on_a_ball()
     points, springs, rest = lattice(3, 2, 9, spacing=(2.0, 2.0, 3.0))
     k = len(points)
     index = np.tile(np.arange(9), 6)
     n0 = len(first.positions)
-    model = S.MSSModel(
+    return S.MSSModel(
         ["chain", "wide"], np.array([0, n0, n0 + k]),
         np.concatenate([first.positions, points + [20.0, 0.0, 0.0]]),
         np.concatenate([first.fixed, (index == 0) | (index == 8)]), np.ones(n0 + k),
@@ -497,6 +493,16 @@ def test_preconditioner_solves_the_spring_matrix_with_tissue_and_volume_stiffnes
         np.concatenate([first.stiffness, np.linspace(5.0, 15.0, len(rest))]),
         np.full(len(rest) + len(first.rest_length), 0.5), None,
         np.concatenate([first.positions, points + [20.0, 0.0, 0.0]]))
+
+
+def test_preconditioner_solves_the_spring_matrix_with_tissue_and_volume_stiffness():
+    """The compiled banded solve of every muscle's factor at once is ``A^-1`` of the dense spring
+    Laplacian plus the tissue on the free particles (two muscles of different sizes and
+    bandwidths), and the initial inverse Hessian adds each muscle's rank-one volume stiffness
+    (Sherman-Morrison)."""
+    from muscle_mss.core.quasi_static.preconditioner import (InitialInverseHessian,
+                                                             model_springs, preconditioner)
+    model = two_muscles()
     prep = S.prepare(model)
     pre = preconditioner(model, prep, 0.1)
     assert len(pre.widths) == 2 and pre.bandwidth > 1

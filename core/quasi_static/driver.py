@@ -23,6 +23,7 @@ from ..settings import (METHOD_QUASI_STATIC,
 from .energy import ContactEnergy
 from .lbfgs import LBFGSHistory, direction, inner, largest_move, settled
 from .preconditioner import InitialInverseHessian, preconditioner
+from .contact_preconditioner import ContactInverseHessian, inverse_columns_of
 
 ARMIJO = 1e-4                   # sufficient decrease of the line search
 BACKTRACKS = 40                 # line search halvings before the solve gives up
@@ -188,8 +189,8 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
         tick = time.perf_counter()
         if done % VOLUME_REFRESH == 0:
             h0 = InitialInverseHessian(pre, free_muscle, volume_stiffness, volume_gradient)
-        step, largest, slope = _step(gradient, history, h0, record.residual, done, tolerance,
-                                     stalled > 0)
+        step, largest, slope = _step(gradient, history, _with_contacts(h0, energy_of, settings),
+                                     record.residual, done, tolerance, stalled > 0)
         solve_seconds += time.perf_counter() - tick
         done += 1
         if largest <= tolerance:
@@ -228,6 +229,16 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
         if progress is not None and progress(done / cap):
             raise MuscleMSSError(f"the solve was stopped by the user after {done} iterations")
     return LoopOutcome(record, done, stopped_by, converged, solve_seconds, position)
+
+
+def _with_contacts(h0, energy_of, settings):
+    """The initial inverse Hessian ``h0`` with the contacts between muscles at the last
+    evaluation of ``energy_of`` when the settings ask for them
+    (:class:`~.contact_preconditioner.ContactInverseHessian`), else ``h0``."""
+    if not settings.quasi_static.contact_preconditioner:
+        return h0
+    return ContactInverseHessian(h0, *energy_of.contact_columns(), h0.free_muscle,
+                                 inverse_columns_of(h0.pre))
 
 
 def _check_reach(position, begin, size, free_muscle, names, done) -> float:

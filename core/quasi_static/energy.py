@@ -18,6 +18,7 @@ from ..mss import add_cage_gradient, cage_volume
 from ..bones.smooth_distance import smooth_sample
 from ..settings import SPRINGS_COROTATIONAL
 from ..contacts.solid_contacts import solid_points
+from .contact_preconditioner import muscle_contact_columns
 from .corotational import add_corotational_energy, corotational_state
 from .preconditioner import Preconditioner, model_springs, spring_order
 
@@ -356,6 +357,16 @@ class ContactEnergy:
                        + self.solid_energy.sum())
         return (energy, free_rows(self.gradient, self.free),
                 free_rows(self.volume_gradient, self.free))
+
+    def contact_columns(self):
+        """The overlapping pairs of muscle spheres at the last evaluation as the columns of
+        :class:`~.contact_preconditioner.ContactInverseHessian`: ``(free particles (k,),
+        sqrt(w) n (k, 3))``, one per pair and free side."""
+        sp = self.spheres
+        if not (sp.count and self.muscle_muscle):
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        at, column = muscle_contact_columns(self.x, self.weight, sp, self.mm)
+        return np.searchsorted(self.free, at), column
 
     def contact_figures(self):
         """``(muscle pairs, bone pairs, deepest overlap mm)`` at the last evaluation."""

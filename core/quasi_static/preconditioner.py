@@ -85,6 +85,7 @@ class Preconditioner:
     stiffest: float
     bandwidth: int
     tissue: np.ndarray
+    inverse_columns: object = None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """``A^-1 rhs`` for ``rhs`` (f, c)."""
@@ -219,6 +220,15 @@ class InitialInverseHessian:
         self.g = volume_gradient
         self.solved_g = None
         self.self_term = None
+
+    def volume_terms(self):
+        """``(A^-1 g (f, 3), beta (M,))`` with ``(A + K)^-1 = A^-1 - beta_m (A^-1 g)(A^-1 g)^T``
+        muscle by muscle (zero where a muscle has no volume term)."""
+        if not self.c.any():
+            return np.zeros_like(self.g), np.zeros_like(self.c)
+        if self.solved_g is None:
+            self(np.zeros((len(self.g), 3)))
+        return self.solved_g, self.c / (1.0 + self.c * self.self_term)
 
     def __call__(self, rhs):
         if not self.c.any():

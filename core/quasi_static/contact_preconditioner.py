@@ -1,0 +1,267 @@
+"""The contacts between muscles in the quasi-static solve's preconditioner.
+
+The L-BFGS iterations start each direction from an initial inverse Hessian. The one of
+:mod:`.preconditioner` knows the springs, the connective tissue and the volume, not the contact
+penalties: where muscles press on each other its steps overshoot, the line search cuts them to
+a fraction (a median 0.2 at the flexed thigh) and the contacts set the iteration count. Here
+each overlapping pair of muscle spheres adds its Gauss-Newton stiffness ``w n n^T`` (``n`` the
+unit vector between the centres, ``w`` the pair's contact stiffness) on each of its two
+particles, each side against the other held still (so the preconditioner stays one block per
+muscle), and the sum is inverted by the Woodbury identity against the banded factors::
+
+    (A0 + U U^T)^-1 = A0^-1 - A0^-1 U (I + U^T A0^-1 U)^-1 U^T A0^-1
+
+``A0`` the :class:`~.preconditioner.InitialInverseHessian`'s matrix (springs, tissue, volume),
+``U`` one column ``sqrt(w) n`` per pair and side. The capacitance ``I + U^T A0^-1 U`` is one
+small dense matrix per muscle, built and factorised at every iteration from the pairs of that
+iteration; its entries need ``A^-1`` between contact particles, the columns of ``A^-1`` at
+those particles, computed once per topology as contacts first reach a particle
+(:class:`InverseColumns`; a column is a pure function of its particle, so a frame's answer does
+not depend on which columns earlier frames left). Applying the result costs a second banded
+solve and the small triangular solves. The contacts with the bones stay out: in the
+preconditioner they sent the arm's brachialis at 130 degrees around a bone into an equilibrium
+of 14 % more energy (docs/solver-notes.md, "Contacts in the preconditioner").
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+# Memory for the columns of A^-1 kept between solves (bytes); past it the columns are dropped
+# and computed again as contacts need them.
+COLUMN_BYTES = 512 * 2**20
+
+
+@njit(cache=True, parallel=True)
+def inverse_columns(factors, factor_ptr, widths, rows_ptr, blocks, places, out):
+    """Row ``c`` of ``out`` (c, K): the column of ``A^-1`` at the particle in place
+    ``places[c]`` of block ``blocks[c]``, within that block (factor order, its first
+    ``rows_ptr[b + 1] - rows_ptr[b]`` entries; the factors as
+    :func:`~.preconditioner.solve_banded_blocks` takes them). Each row alone (no sum across
+    rows): a column's values do not depend on the others computed with it."""
+    for c in prange(blocks.shape[0]):
+        b = blocks[c]
+        w = widths[b]
+        k = rows_ptr[b + 1] - rows_ptr[b]
+        base = factor_ptr[b]
+        y = out[c]
+        for j in range(k):
+            y[j] = 0.0
+        y[places[c]] = 1.0
+        for j in range(places[c], k):               # L y = e (zero above the unit)
+            value = y[j] / factors[base + j * (w + 1)]
+            y[j] = value
+            top = min(w, k - 1 - j)
+            for t in range(1, top + 1):
+                y[j + t] -= factors[base + j * (w + 1) + t] * value
+        for j in range(k - 1, -1, -1):              # L^T x = y
+            top = min(w, k - 1 - j)
+            total = 0.0
+            for t in range(1, top + 1):
+                total += factors[base + j * (w + 1) + t] * y[j + t]
+            y[j] = (y[j] - total) / factors[base + j * (w + 1)]
+
+
+def inverse_columns_of(pre) -> "InverseColumns":
+    """The :class:`InverseColumns` of the :class:`~.preconditioner.Preconditioner` ``pre``,
+    kept on it (its ``inverse_columns``) for the solves of the same topology."""
+    if pre.inverse_columns is None:
+        pre.inverse_columns = InverseColumns(pre)
+    return pre.inverse_columns
+
+
+class InverseColumns:
+    """The columns of a :class:`~.preconditioner.Preconditioner`'s ``A^-1`` at free particles,
+    each within its muscle's block, computed as they are first asked for and kept (up to
+    :data:`COLUMN_BYTES`). ``block_of`` and ``place_of`` (f,): each free particle's block and
+    its place in that block's factor order."""
+
+    def __init__(self, pre):
+        self.pre = pre
+        f = len(pre.free)
+        sizes = np.diff(pre.rows_ptr)
+        self.block_of = np.empty(f, dtype=np.int64)
+        self.block_of[pre.rows] = np.repeat(np.arange(len(sizes)), sizes)
+        self.place_of = np.empty(f, dtype=np.int64)
+        self.place_of[pre.rows] = np.arange(f) - np.repeat(pre.rows_ptr[:-1], sizes)
+        self.width = int(sizes.max(initial=1))
+        self.slot = np.full(f, -1, dtype=np.int64)
+        self.columns = np.zeros((0, self.width))
+        self.count = 0
+
+    def slots(self, particles: np.ndarray) -> np.ndarray:
+        """(k,) the rows of :attr:`columns` holding the columns at the free ``particles``
+        (k,), those missing computed first."""
+        missing = np.unique(particles[self.slot[particles] < 0])
+        if len(missing):
+            if (self.count + len(missing)) * self.width * 8 > COLUMN_BYTES:
+                self.slot[:] = -1
+                self.count = 0
+                missing = np.unique(particles)
+            need = self.count + len(missing)
+            if need > len(self.columns):
+                grown = np.zeros((max(need, 2 * len(self.columns)), self.width))
+                grown[:self.count] = self.columns[:self.count]
+                self.columns = grown
+            pre = self.pre
+            inverse_columns(pre.factors, pre.factor_ptr, pre.widths, pre.rows_ptr,
+                            self.block_of[missing], self.place_of[missing],
+                            self.columns[self.count:need])
+            self.slot[missing] = np.arange(self.count, need)
+            self.count = need
+        return self.slot[particles]
+
+
+@njit(cache=True, parallel=True)
+def _muscle_contacts(x, weight, particle, radius, fixed, begin, end, idx, start, at, column):
+    """Sphere ``i``'s overlapping partners in its candidate list ``idx[begin[i]:end[i]]``
+    (another muscle's spheres): their count into ``start[i + 1]`` when ``at`` is empty, else
+    its columns from ``start[i]`` into ``at`` (its particle) and ``column`` (``sqrt(w) n``, ``n``
+    the unit vector from the partner's centre to its own)."""
+    fill = at.shape[0] > 0
+    for i in prange(particle.shape[0]):
+        if fixed[i]:
+            if not fill:
+                start[i + 1] = 0
+            continue
+        p = particle[i]
+        c = start[i] if fill else 0
+        for k in range(begin[i], end[i]):
+            j = idx[k]
+            q = particle[j]
+            dx, dy, dz = x[0, p] - x[0, q], x[1, p] - x[1, q], x[2, p] - x[2, q]
+            d = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if d < radius[i] + radius[j] and d > 0.0:
+                if fill:
+                    s = np.sqrt(0.5 * (weight[p] + weight[q])) / d
+                    at[c] = p
+                    column[c, 0], column[c, 1], column[c, 2] = s * dx, s * dy, s * dz
+                c += 1
+        if not fill:
+            start[i + 1] = c
+
+
+def muscle_contact_columns(x, weight, spheres, lists):
+    """The overlapping pairs of muscle spheres at ``x`` (3, n) mm as columns of ``U``:
+    ``(particles (k,) solver order, columns (k, 3) sqrt(w) n)``, one per pair and free side;
+    ``weight`` (n,) g/s^2 each particle's contact stiffness (a pair's the mean of its two, as
+    :func:`~.energy.sphere_contact_energy`), ``lists`` the muscle candidate lists of
+    :class:`~.energy.ContactEnergy`."""
+    start = np.zeros(spheres.count + 1, dtype=np.int64)
+    args = (x, weight, spheres.particle, spheres.radius, spheres.fixed, *lists)
+    _muscle_contacts(*args, start, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+    start = np.cumsum(start)
+    at = np.empty(start[-1], dtype=np.int64)
+    column = np.empty((start[-1], 3))
+    if len(at):
+        _muscle_contacts(*args, start, at, column)
+    return at, column
+
+
+@njit(cache=True, parallel=True)
+def _capacitance(ptr, at, column, slot, columns, place, volume_solved, beta, cap_ptr, cap):
+    """Each muscle's capacitance ``I + U^T A0^-1 U`` (dense, row major from ``cap_ptr[m]``,
+    its lower triangle)."""
+    for m in prange(ptr.shape[0] - 1):
+        first, k = ptr[m], ptr[m + 1] - ptr[m]
+        s = cap[cap_ptr[m]:cap_ptr[m] + k * k]
+        for a in range(k):
+            ca = first + a
+            pa = at[ca]
+            va = (column[ca, 0] * volume_solved[pa, 0] + column[ca, 1] * volume_solved[pa, 1]
+                  + column[ca, 2] * volume_solved[pa, 2])
+            for b in range(a + 1):
+                cb = first + b
+                pb = at[cb]
+                vb = (column[cb, 0] * volume_solved[pb, 0]
+                      + column[cb, 1] * volume_solved[pb, 1]
+                      + column[cb, 2] * volume_solved[pb, 2])
+                dot = (column[ca, 0] * column[cb, 0] + column[ca, 1] * column[cb, 1]
+                       + column[ca, 2] * column[cb, 2])
+                value = columns[slot[ca], place[pb]] * dot - beta[m] * va * vb
+                if a == b:
+                    value += 1.0
+                s[a * k + b] = value
+                s[b * k + a] = value
+
+
+@njit(cache=True, parallel=True, fastmath={"reassoc"})
+def _factorise(ptr, cap_ptr, cap):
+    """The capacitances of :func:`_capacitance` replaced by their lower Cholesky factors, one
+    muscle per thread (compiled here rather than LAPACK's: a BLAS call's threads spin after it
+    and take the cores from the parallel kernels that follow, as in
+    :func:`~.lbfgs.inner`)."""
+    for m in prange(ptr.shape[0] - 1):
+        k = ptr[m + 1] - ptr[m]
+        s = cap[cap_ptr[m]:cap_ptr[m] + k * k]
+        for j in range(k):
+            total = s[j * k + j]
+            for t in range(j):
+                total -= s[j * k + t] * s[j * k + t]
+            d = np.sqrt(total)
+            s[j * k + j] = d
+            for i in range(j + 1, k):
+                total = s[i * k + j]
+                for t in range(j):
+                    total -= s[i * k + t] * s[j * k + t]
+                s[i * k + j] = total / d
+
+
+@njit(cache=True, parallel=True, fastmath={"reassoc"})
+def _correction(ptr, at, column, cap_ptr, cap, y, z, work):
+    """``z`` (f, 3) = ``U (I + U^T A0^-1 U)^-1 U^T y`` per muscle (``z`` zero on entry)."""
+    for m in prange(ptr.shape[0] - 1):
+        first, k = ptr[m], ptr[m + 1] - ptr[m]
+        s = cap[cap_ptr[m]:cap_ptr[m] + k * k]
+        t = work[first:first + k]
+        for a in range(k):
+            c = first + a
+            p = at[c]
+            t[a] = column[c, 0] * y[p, 0] + column[c, 1] * y[p, 1] + column[c, 2] * y[p, 2]
+        for a in range(k):                  # L u = t
+            total = t[a]
+            for b in range(a):
+                total -= s[a * k + b] * t[b]
+            t[a] = total / s[a * k + a]
+        for a in range(k - 1, -1, -1):      # L^T v = u, row by row of L
+            t[a] /= s[a * k + a]
+            for b in range(a):
+                t[b] -= s[a * k + b] * t[a]
+        for a in range(k):
+            c = first + a
+            p = at[c]
+            for axis in range(3):
+                z[p, axis] += column[c, axis] * t[a]
+
+
+class ContactInverseHessian:
+    """``(A0 + U U^T)^-1`` (module docstring): ``h0`` applies ``A0^-1`` (an
+    :class:`~.preconditioner.InitialInverseHessian`, its volume gradient solved), ``at`` (k,)
+    the contacts' free particles, ``column`` (k, 3) their ``sqrt(w) n``, ``muscle_of`` (f,)
+    each free particle's muscle, ``inverse`` the :class:`InverseColumns`."""
+
+    def __init__(self, h0, at, column, muscle_of, inverse: InverseColumns):
+        self.h0 = h0
+        order = np.argsort(muscle_of[at], kind="stable")
+        self.at, self.column = at[order], np.ascontiguousarray(column[order])
+        n_muscles = len(h0.c)
+        self.ptr = np.searchsorted(muscle_of[self.at], np.arange(n_muscles + 1)).astype(np.int64)
+        sizes = np.diff(self.ptr)
+        self.cap_ptr = np.concatenate([[0], np.cumsum(sizes * sizes)]).astype(np.int64)
+        self.cap = np.empty(self.cap_ptr[-1])
+        self.work = np.empty(len(self.at))
+        if not len(self.at):
+            return
+        slot = inverse.slots(self.at)
+        volume_solved, beta = h0.volume_terms()
+        _capacitance(self.ptr, self.at, self.column, slot, inverse.columns, inverse.place_of,
+                     volume_solved, beta, self.cap_ptr, self.cap)
+        _factorise(self.ptr, self.cap_ptr, self.cap)
+
+    def __call__(self, rhs):
+        y = self.h0(rhs)
+        if not len(self.at):
+            return y
+        z = np.zeros_like(y)
+        _correction(self.ptr, self.at, self.column, self.cap_ptr, self.cap, y, z, self.work)
+        return y - self.h0(z)
