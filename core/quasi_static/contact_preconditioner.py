@@ -160,8 +160,11 @@ def muscle_contact_columns(x, weight, spheres, lists):
 
 @njit(cache=True, parallel=True)
 def _capacitance(ptr, at, column, slot, columns, place, volume_solved, beta, cap_ptr, cap):
-    """Each muscle's capacitance ``I + U^T A0^-1 U`` (dense, row major from ``cap_ptr[m]``,
-    its lower triangle)."""
+    """Each muscle's capacitance ``I + U^T A0^-1 U`` (dense, row major from ``cap_ptr[m]``),
+    for the contacts ``ptr[m]:ptr[m + 1]`` (particles ``at``, columns ``column``; ``slot`` of
+    each particle's row of ``columns``, the columns of ``A^-1`` in factor order, ``place`` of
+    each free particle in it) and the volume's ``A0^-1 = A^-1 - beta_m a a^T``, ``a`` =
+    ``volume_solved`` (f, 3)."""
     for m in prange(ptr.shape[0] - 1):
         first, k = ptr[m], ptr[m + 1] - ptr[m]
         s = cap[cap_ptr[m]:cap_ptr[m] + k * k]
