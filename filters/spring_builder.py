@@ -37,13 +37,13 @@ from muscle_mss.core.radii import (boundary_from_grid, boundary_from_surface, sh
 from muscle_mss.core.scene import BONES_FILE, MUSCLES_FILE, FibreSet, Scene, Surface
 from muscle_mss.core.springs import (DELAUNAY_REACH, delaunay_springs, fibre_step,
                                      knn_springs, lattice_springs, rest_lengths)
-from muscle_mss.core.validation import (far_point_problem, placement_problems,
-                                        placement_warnings)
+from muscle_mss.core.validation import far_point_problem
 
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
 from .bone_sets import clear_of_bones
+from .check_cache import placement_verdict
 from muscle_mss.core.properties import Option, Property
 
 LAYOUT_LATTICE_6, LAYOUT_LATTICE_26 = "lattice-6", "lattice-26"
@@ -146,7 +146,8 @@ def check_placement(blocks, surfaces: dict, bones) -> list:
     muscle's particles taken as its fibres (in fibre order). The same rules ``muscle-mss
     validate`` applies, so that ParaView refuses the same scenes. Returns the warnings of a
     scene accepted but implausibly placed (:func:`~muscle_mss.core.validation.placement_warnings`:
-    a muscle's belly in a bone or another muscle)."""
+    a muscle's belly in a bone or another muscle). The verdict of a scene checked before (in
+    any process) is read back (:func:`~muscle_mss.filters.check_cache.placement_verdict`)."""
     far = [far_point_problem(V.points_of(block), f"{where} block '{name}'")
            for where, items in ((PARTICLES, blocks), (MUSCLES_FILE, surfaces.items()),
                                 (BONES_FILE, V.blocks(bones, where=BONES_FILE) if bones else ()))
@@ -183,11 +184,10 @@ def check_placement(blocks, surfaces: dict, bones) -> list:
             surface = _checked_surface(block, f"{BONES_FILE} block '{name}'")
             if surface is not None:
                 rest_bones[name] = surface
-    scene = Scene(muscles, fibres, rest_bones)
-    problems = placement_problems(scene)
+    problems, warnings = placement_verdict(Scene(muscles, fibres, rest_bones))
     if problems:
         raise first_problem(problems)
-    return placement_warnings(scene)
+    return warnings
 
 
 class SpringBuilder(MuscleFilter):

@@ -2,7 +2,8 @@
 
 The bones' distance fields and the muscles' mean value coordinates are not read from or written
 to the user's disk stores (:mod:`muscle_mss.core.bones.field_store`,
-``muscle_mss.filters.mvc_surface_deformer.WEIGHTS_STORE``) during the tests, nor by the ParaView
+``muscle_mss.filters.mvc_surface_deformer.WEIGHTS_STORE``, the placement verdicts of
+``muscle_mss.filters.check_cache``) during the tests, nor by the ParaView
 processes they start: every run computes them, so the counts the tests assert are exact. Nor is
 the frame cache (``muscle_mss.filters.frame_cache``): a test that wants it names its folder."""
 import os
@@ -11,6 +12,7 @@ import pytest
 
 os.environ["MUSCLE_MSS_BONE_FIELDS"] = "off"
 os.environ["MUSCLE_MSS_MVC_WEIGHTS"] = "off"
+os.environ["MUSCLE_MSS_PLACEMENT_CHECKS"] = "off"
 os.environ["MUSCLE_MSS_FRAME_CACHE"] = "off"
 os.environ["MUSCLE_MSS_JOBS"] = "1"      # whole motions in one process; tests/test_jobs.py: --jobs
 

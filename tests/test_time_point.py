@@ -176,6 +176,46 @@ def test_fields_are_stored_on_disk_and_read_back_bitwise_by_a_later_run(tmp_path
     assert bone_sets.field_counts["sampled"] == 1 and not list(tmp_path.iterdir())
 
 
+def test_placement_verdicts_are_stored_on_disk_and_read_back_by_a_later_run(
+        small_scene, tmp_path, monkeypatch):
+    """The Spring Builder's placement verdict of a scene is read back from disk when the same
+    content was checked before (a later run, a worker process), and checked again when one
+    coordinate changes, when its file is damaged, and always with the store off."""
+    import dataclasses
+    from muscle_mss.core.validation import placement_problems, placement_warnings
+    monkeypatch.setenv("MUSCLE_MSS_PLACEMENT_CHECKS", str(tmp_path))
+    names = list(small_scene.fibres)
+    swapped = dataclasses.replace(small_scene, fibres={
+        **small_scene.fibres, names[0]: small_scene.fibres[names[1]],
+        names[1]: small_scene.fibres[names[0]]})
+    want = {"valid": ([], placement_warnings(small_scene)),
+            "swapped": (placement_problems(swapped), [])}
+    assert want["swapped"][0]           # fibres outside their muscle: refused
+    for scene, name in ((small_scene, "valid"), (swapped, "swapped")):
+        before = dict(check_cache.verdict_counts)
+        assert check_cache.placement_verdict(scene) == want[name]
+        assert check_cache.placement_verdict(scene) == want[name]
+        assert check_cache.verdict_counts["checked"] == before["checked"] + 1
+        assert check_cache.verdict_counts["loaded"] == before["loaded"] + 1
+    assert len(list(tmp_path.iterdir())) == 2
+    moved = dataclasses.replace(small_scene, bones={
+        name: dataclasses.replace(s, points=s.points + (1e-9 if k == 0 else 0.0))
+        for k, (name, s) in enumerate(small_scene.bones.items())})
+    before = dict(check_cache.verdict_counts)
+    check_cache.placement_verdict(moved)
+    assert check_cache.verdict_counts["checked"] == before["checked"] + 1
+    for stored in tmp_path.iterdir():
+        stored.write_bytes(stored.read_bytes()[:100])
+    before = dict(check_cache.verdict_counts)
+    assert check_cache.placement_verdict(swapped) == want["swapped"]
+    assert check_cache.verdict_counts == {**before, "checked": before["checked"] + 1}
+    monkeypatch.setenv("MUSCLE_MSS_PLACEMENT_CHECKS", "off")
+    for stored in tmp_path.iterdir():
+        stored.unlink()
+    assert check_cache.placement_verdict(small_scene) == want["valid"]
+    assert not list(tmp_path.iterdir())
+
+
 def test_rest_surface_checked_once_per_content():
     points, triangles = bone()
     assert check_cache.rest_surface_problems(points, triangles) == []
