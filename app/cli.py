@@ -124,7 +124,9 @@ def run_and_report(scene_folder: str, out: str, settings: dict, scene: Scene,
     convergence_picture(os.path.join(out, run_output.convergence_file(index)),
                         os.path.join(out, run_output.CONVERGENCE_PICTURE),
                         title=f"convergence at t = {pipeline.times[index]:.3f} s")
-    poses_picture(pipeline, index, os.path.join(out, run_output.POSES_PICTURE))
+    solved_file = (os.path.join(out, run_output.series_file(run_output.SURFACES, index))
+                   if run_output.SURFACES in writing.series else None)
+    poses_picture(pipeline, index, os.path.join(out, run_output.POSES_PICTURE), solved=solved_file)
     print(summary_table(rows))
     if cached:
         print(cached)

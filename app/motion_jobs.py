@@ -178,7 +178,7 @@ def _raised(kind, number, index, value) -> BaseException:
 # ---- the run's process -------------------------------------------------------------------------
 
 def solve_in_workers(build, indices, work, jobs: int, on_result=None, on_ready=None,
-                     discard=None):
+                     discard=None, meanwhile=None):
     """Solve the time points ``indices`` (in time order) in ``jobs`` worker processes, each
     building its pipeline from ``build`` = ``(scene folder, settings, frame cache folder or
     None)`` and returning ``work(pipeline, index)`` (a module-level function or a
@@ -186,7 +186,9 @@ def solve_in_workers(build, indices, work, jobs: int, on_result=None, on_ready=N
 
     ``on_result(index, value, received, total)`` as each arrives (progress);
     ``on_ready(index, value)`` in time order; ``discard(value)`` for one received but not
-    taken (after a failure). Returns ``(loaded, solved)``: the frames the workers' frame
+    taken (after a failure); ``meanwhile()``: this process's own work, done once the workers
+    are started and handed their first time points (they spend their first seconds starting
+    Python and reading the scene). Returns ``(loaded, solved)``: the frames the workers' frame
     caches gave and took. Raises the failure of the first failing time point in time order,
     after every time point before it is taken, a :class:`MuscleMSSError` as the serial run
     raises it; stops every worker on the way out, whatever happened."""
@@ -234,6 +236,8 @@ def solve_in_workers(build, indices, work, jobs: int, on_result=None, on_ready=N
                 signal.signal(signal.SIGINT, previous)
         for k in range(jobs):
             hand_out(k)
+        if meanwhile is not None:
+            meanwhile()
         while busy:
             kind, k, index, value, got, gave = _next_result(results, workers, busy)
             loaded, solved = loaded + got, solved + gave
@@ -352,13 +356,19 @@ def run_in_workers(pipeline, scene_folder, out, settings, indices, jobs, on_step
             wallclock.perf_counter() - start)
         rows.extend(result.rows)
 
+    def meanwhile():
+        # the stages before the solver, which do not change with the time (what the run's
+        # pictures need of this process's pipeline), while the workers start
+        from .motion_run import update_at
+        update_at(pipeline.pose, 2, pipeline.times[indices[0]])
+
     build = (str(scene_folder), dict(settings or {}),
              frames.cache.folder if frames is not None else None)
     work = partial(stage_frame, os.path.abspath(out), tuple(series_names or SERIES),
                    compressor or DEFAULT_COMPRESSOR)
     try:
         loaded, solved = solve_in_workers(build, indices, work, jobs, received, ready,
-                                          lambda value: discard_staged(value[1]))
+                                          lambda value: discard_staged(value[1]), meanwhile)
     finally:
         remove_stale_staging(out)           # a stopped worker's, half written
     if frames is not None:

@@ -169,21 +169,30 @@ def convergence_picture(convergence_csv, path, title="") -> str:
     return str(path)
 
 
-def poses_picture(pipeline, index, path, window_size=(1800, 800)) -> str:
+def poses_picture(pipeline, index, path, window_size=(1800, 800), solved=None) -> str:
     """Write a PNG of three panels at time point ``index`` of a
     :class:`~muscle_mss.app.motion_run.Pipeline`: the rest pose, the rigid-only pose (the
-    Rigid Pose Transform's surfaces) and the solved pose (the MVC Surface Deformer's surfaces),
-    as the paper's figure 1. Returns ``path``."""
+    Rigid Pose Transform's surfaces) and the solved pose (the MVC Surface Deformer's surfaces,
+    or ``solved``: the path of a run's surfaces ``.vtm`` of that time point, so that a run
+    whose time points were solved elsewhere, in worker processes or not kept, does not solve
+    it again), as the paper's figure 1. Returns ``path``."""
     from muscle_mss.filters import vtk_arrays as V
     from .motion_run import update_at
 
     t = pipeline.times[index]
     rest_bones = pipeline.bones.GetOutputDataObject(0)
+    if solved is None:
+        solved_surfaces = update_at(pipeline.deformer, 0, t)
+    else:
+        from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataReader
+        reader = vtkXMLMultiBlockDataReader()
+        reader.SetFileName(str(solved))
+        reader.Update()
+        solved_surfaces = reader.GetOutput()
     panels = (("rest pose", pipeline.muscles.GetOutputDataObject(0), rest_bones),
               (f"rigid only, t = {t:.2f} s", update_at(pipeline.pose, 2, t),
                update_at(pipeline.pose, 1, t)),
-              (f"solved, t = {t:.2f} s", update_at(pipeline.deformer, 0, t),
-               update_at(pipeline.pose, 1, t)))
+              (f"solved, t = {t:.2f} s", solved_surfaces, update_at(pipeline.pose, 1, t)))
     pyvista = _pyvista_off_screen()
     plotter = pyvista.Plotter(off_screen=True, shape=(1, 3), window_size=list(window_size),
                               border=False)

@@ -50,8 +50,8 @@ def other_value(prop, value):
 def test_changing_any_property_of_the_solver_or_a_filter_before_it_changes_the_key(
         filter_name, prop):
     """Every property of the filters a frame depends on is in its key; those of the two
-    filters after the solver (they run on every frame, loaded or solved) and FrameCache
-    (where it is kept) are not."""
+    filters after the solver (they run on every frame, loaded or solved: the next test) and
+    FrameCache (where it is kept) are not."""
     filters = filter_instances()
     before = F.frame_key("scene", filters, 0.5)
     owner = filters[FILTER_NAMES.index(filter_name)]
@@ -298,6 +298,38 @@ def test_the_solvers_frame_cache_property_loads_what_it_stored_in_a_new_pipeline
     assert len(F.FrameStore(cache).entries()) == 1
     for first, second in zip(*outputs):
         np.testing.assert_array_equal(first, second)
+
+
+def after_the_solver():
+    return [(name, prop) for name, prop in all_properties() if name not in F.KEYED_FILTERS]
+
+
+@pytest.mark.parametrize("filter_name,prop", after_the_solver(),
+                         ids=[f"{n}.{p.name}" for n, p in after_the_solver()])
+def test_a_property_after_the_solver_changes_what_a_loaded_frame_shows(
+        filter_name, prop, small_scene_dir, tmp_path):
+    """The filters after the solver (the MVC Surface Deformer; the Volume-Error Probe has no
+    property) are not in the key because they are not cached: they run on every frame, loaded
+    or solved. Changing one of their properties never shows a stale result: the frame is
+    loaded and what they make of it is what a pipeline without a cache makes."""
+    from muscle_mss.app.motion_run import update_at
+    from muscle_mss.filters import vtk_arrays as V
+    cache, t = str(tmp_path / "cache"), 3
+    first = _plain_pipeline(small_scene_dir, cache)
+    update_at(first.probe, 0, first.times[t])
+    owner = {"MVCSurfaceDeformer": "deformer", "VolumeErrorProbe": "probe"}[filter_name]
+    changed = other_value(prop, getattr(first, owner).value(prop.name))
+    shown = []
+    for frame_cache in (cache, "off"):
+        p = _plain_pipeline(small_scene_dir, frame_cache)
+        getattr(getattr(p, owner), "Set" + prop.name)(changed)
+        surfaces = update_at(p.probe, 0, p.times[t])
+        shown.append({n: V.points_of(b) for n, b in V.blocks(surfaces)})
+        assert p.solver.frame_counts == ({"loaded": 1, "solved": 0} if frame_cache != "off"
+                                         else {"loaded": 0, "solved": 1})
+    assert shown[0].keys() == shown[1].keys()
+    for name in shown[0]:
+        np.testing.assert_array_equal(shown[0][name], shown[1][name])
 
 
 def test_frame_cache_off_or_empty_in_a_plain_pipeline_writes_nothing(small_scene_dir, tmp_path,
