@@ -53,12 +53,12 @@ class Pipeline:
     times: list = field(default_factory=list)
     frames: object = None
     """The frame cache the solver reads and fills (a
-    :class:`~muscle_mss.filters.frame_cache.SolverFrames`), or None."""
+    :class:`~muscle_mss.filters.pipeline_frames.SolverFrames`), or None."""
 
 
 class CachedCollisionSolver(MSSCollisionSolver):
     """The MSS Collision Solver that takes a frame from the frame cache (``frames``, a
-    :class:`~muscle_mss.filters.frame_cache.SolverFrames`) when it holds it and stores each frame
+    :class:`~muscle_mss.filters.pipeline_frames.SolverFrames`) when it holds it and stores each frame
     it solves: everything after the solve (the outputs, the bone depths, the warnings) runs as
     for a solved frame, so its outputs are the solved frame's."""
 
@@ -123,8 +123,10 @@ def build_pipeline(scene_folder, settings: dict | None = None,
         raise MuscleMSSError(f"{os.path.join(str(scene_folder), MOTION_FILE)} gave no time steps")
     frames = None
     if cache:
-        from muscle_mss.filters.frame_cache import FrameStore, SolverFrames
+        from muscle_mss.filters.frame_cache import FrameStore
+        from muscle_mss.filters.pipeline_frames import SolverFrames, SurfaceFrames
         frames = solver.frames = SolverFrames(FrameStore(cache), scene_folder, filters)
+        deformer.frames = SurfaceFrames(frames.cache, scene_folder, filters, scene=frames.scene)
     return Pipeline(muscles, fibres, bones, motion, resampler, springs, pose, solver, deformer,
                     probe, times, frames)
 

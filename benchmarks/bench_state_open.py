@@ -1,8 +1,9 @@
 """The shipped state opened right after ``./demo.sh``: seconds from pvpython's ``LoadState`` to
 the first rendered view and to every view rendered (both charts filled: the convergence chart
 and each muscle's mean fibre strain over the whole motion, 21 frames), the MSS Collision
-Solver's frames loaded from the frame cache and solved, and one cached frame through the
-solver's update alone (its inputs updated first, nothing rendered).
+Solver's frames loaded from the frame cache and solved (and the MVC Surface Deformer's deformed
+surfaces loaded and computed), and one cached frame through the solver's update alone (its
+inputs updated first, nothing rendered).
 
 Run from the checkout root after ``./demo.sh`` (which fills the user's frame cache):
 
@@ -39,6 +40,7 @@ def main() -> None:
     every = time.perf_counter()
     solver = simple.FindSource("MSS Collision Solver")
     counts = dict(solver.GetClientSideObject().frame_counts)
+    surfaces = dict(simple.FindSource("MVC Surface Deformer").GetClientSideObject().frame_counts)
     strain = simple.FindSource(FIBRE_STRAIN_OVER_TIME)
     rows = strain.GetDataInformation(0).GetNumberOfRows() if strain is not None else 0
     # one cached frame through the solver alone: a time the state has not shown yet
@@ -52,7 +54,7 @@ def main() -> None:
     print("RESULT " + json.dumps({
         "import_s": round(imported - STARTED, 2), "load_state_s": round(loaded - imported, 2),
         "first_render_s": round(first - imported, 2), "every_view_s": round(every - imported, 2),
-        "frames": counts, "strain_rows": rows, "cached_frame_s": round(cached_frame, 3),
+        "frames": counts, "surfaces": surfaces, "strain_rows": rows, "cached_frame_s": round(cached_frame, 3),
         "cached_frame_loaded": after["loaded"] - counts["loaded"], "load_average": load,
         "frame_cache": solver.FrameCache or "(empty: the user's frame cache)"}))
 

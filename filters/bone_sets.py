@@ -24,19 +24,22 @@ from collections import OrderedDict
 
 import numpy as np
 
-from muscle_mss.core.bones.distance import BoneFieldSet, BoneSolids, signed_distances
+from muscle_mss.core.bones.distance import (BoneFieldSet, BoneSolids, push_out_of_bones,
+                                            signed_distances)
 from muscle_mss.core.bones.field_sampling import bone_distance_field
-from muscle_mss.core.bones.exact_distance import exact_signed_distances
+from muscle_mss.core.bones.exact_distance import exact_signed_distances, push_out_exactly
 from muscle_mss.core.bones.triangle_distance import (PreparedSurface, inside_surface,
                                                 prepared_surface, surface_digest)
 from muscle_mss.core.bones import field_store
+from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.bones.spheres import bone_spheres
 from muscle_mss.core.mesh_checks import surface_problems
 from muscle_mss.core.model import Bones
 from muscle_mss.core.settings import BONE_CONTACT_SOLID, DEFAULT_BONE_SPHERE_SPACING
 from muscle_mss.core.radii import SHRINK_MARGIN, clear_of_obstacles
-from muscle_mss.core.rigid_fit import rigid_fit
+from muscle_mss.core.rigid_fit import fitted_rigid_transform, rigid_fit
 
+from . import array_names as A
 from . import vtk_arrays as V
 
 SAME_BONE_RESIDUAL = 1e-9
@@ -318,3 +321,67 @@ def contact_bones(posed_bones, contact: str, spacing: float = DEFAULT_BONE_SPHER
     if contact != BONE_CONTACT_SOLID:
         return Bones(spheres=bone_sphere_set(posed_bones, spacing, POSED_BONES))
     return Bones(solids=solid_bones(posed_bones) if muscle_bone else None)
+
+
+# ---- the deformed surfaces kept out of the posed bones (the MVC Surface Deformer) -----------
+
+def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
+    """(b, 3, 4) rest-to-posed transforms of the bones ``rest_points`` ({name: (n, 3) mm}),
+    fitted to the blocks of the same names in ``posed_bones``."""
+    posed = dict(V.polydata_blocks(posed_bones, "PosedBones", "a bone's triangle surface"))
+    transforms = []
+    for name, points in rest_points.items():
+        if name not in posed:
+            raise MuscleMSSError(f"PosedBones: has no block '{name}'; it must hold the bones of "
+                                 "RestBones (block names must match)")
+        transforms.append(fitted_rigid_transform(points, V.points_of(posed[name]),
+                                                 where=f"PosedBones block '{name}'"))
+    return np.array(transforms).reshape(-1, 3, 4)
+
+
+def composed_transforms(outer, inner) -> np.ndarray:
+    """(b, 3, 4) transforms: each of ``inner`` (b, 3, 4) followed by the same bone's ``outer``."""
+    rotation = outer[:, :, :3] @ inner[:, :, :3]
+    shift = np.einsum("bij,bj->bi", outer[:, :, :3], inner[:, :, 3]) + outer[:, :, 3]
+    return np.concatenate([rotation, shift[:, :, None]], axis=2)
+
+
+def new_in_bones(fields, transforms, points, outside):
+    """``(inside (n,) bool, depth (n,) mm)`` of the ``points`` (n, 3): which are inside a posed
+    bone they were ``outside`` (n, b) at rest, and how deep (0 for the others), by the bones'
+    exact distance near their surfaces."""
+    distance = exact_signed_distances(fields, points, transforms)
+    new = (distance < -INSIDE_TOLERANCE) & outside
+    return new.any(axis=1), np.where(new, -distance, 0.0).max(axis=1, initial=0.0)
+
+
+def keep_out_of_bones(deformed: list, fields, transforms, outside, push):
+    """The muscles' ``deformed`` surface vertices (a list of (v_i, 3) arrays, mm) with those
+    newly inside a bone pushed out (when ``push``), and for each muscle what to report:
+    ``{array or field name: value}``. ``outside`` (sum v_i, b) bool: which vertex was outside
+    which bone at rest, the muscles' in turn. All muscles go through each kernel at once (one
+    parallel region each, not one per muscle)."""
+    sizes = np.array([len(d) for d in deformed])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    muscle = np.repeat(np.arange(len(sizes)), sizes)
+    points = np.concatenate(deformed)
+    inside, depth = new_in_bones(fields, transforms, points, outside)
+    count = np.bincount(muscle[inside], minlength=len(sizes))
+    deepest = np.maximum.reduceat(depth, starts[:-1])
+    count_after, deepest_after = count, deepest
+    if push and inside.any():
+        # only the vertices newly inside move (a vertex already out gets exactly 0)
+        points[inside] += push_out_of_bones(fields, points[inside], None, transforms,
+                                            active=outside[inside], tolerance=INSIDE_TOLERANCE)
+        # the fields' push leaves a vertex up to their error inside a thin bone: finish exactly
+        points[inside] += push_out_exactly(fields, points[inside], transforms, outside[inside])
+        still, depth_after = new_in_bones(fields, transforms, points[inside], outside[inside])
+        count_after = np.bincount(muscle[inside][still], minlength=len(sizes))
+        deepest_after = np.zeros(len(sizes))
+        np.maximum.at(deepest_after, muscle[inside], depth_after)
+    reports = [{A.NEW_IN_BONE_DEPTH: depth[a:b], A.NEW_IN_BONE_VERTICES: int(count[i]),
+                A.NEW_IN_BONE_DEPTH_MM: float(deepest[i]),
+                A.NEW_IN_BONE_VERTICES_AFTER: int(count_after[i]),
+                A.NEW_IN_BONE_DEPTH_AFTER_MM: float(deepest_after[i])}
+               for i, (a, b) in enumerate(zip(starts[:-1], starts[1:]))]
+    return [points[a:b] for a, b in zip(starts[:-1], starts[1:])], reports

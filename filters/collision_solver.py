@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import os
 
 import numpy as np
 
@@ -54,7 +53,6 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.model import Bones, MSSModel, PreparedModel, prepare, with_rest_state
 from muscle_mss.core.solver import solve
 from muscle_mss.core.errors import MuscleMSSError, PoseError
-from muscle_mss.core.scene import BONES_FILE, FIBRES_FILE, MOTION_FILE, MUSCLES_FILE
 from muscle_mss.core.settings import METHOD_QUASI_STATIC, SolverSettings
 from muscle_mss.core.solver_properties import (SOLVER_PROPERTIES, ignored_settings,
                                                unconverged_warning)
@@ -62,9 +60,9 @@ from muscle_mss.core.solver_properties import (SOLVER_PROPERTIES, ignored_settin
 from . import array_names as A
 from .bone_sets import POSED_BONES as BONES, bone_depths, contact_bones, particles_in_bones
 from . import vtk_arrays as V
-from .base import MuscleFilter, Port, reader_files
-from .frame_cache import (FRAME_CACHE_PROPERTY, KEYED_FILTERS, FrameStore, SolverFrames,
-                          chosen_folder, filter_name, scene_digest)
+from .base import MuscleFilter, Port
+from .frame_cache import FRAME_CACHE_PROPERTY, KEYED_FILTERS, chosen_folder
+from .pipeline_frames import SolverFrames, pipeline_frames
 from .model_blocks import MODEL, MODEL_BLOCK, muscle_block
 
 
@@ -217,32 +215,17 @@ class MSSCollisionSolver(MuscleFilter):
                     Q.distance_to_go(result.residual), result.remaining_penetration) + "\n")
         self.progress(1.0)
 
+    def frame_folder(self) -> str | None:
+        """The frame cache's folder ``FrameCache`` chooses (None: off); the MVC Surface
+        Deformer after this solver keeps its surfaces there too."""
+        text = self.value("FrameCache").strip()
+        return chosen_folder(text) if text else self.default_frame_cache()
+
     def _pipeline_frames(self):
-        """The :class:`~muscle_mss.filters.frame_cache.SolverFrames` of the folder
+        """The :class:`~muscle_mss.filters.pipeline_frames.SolverFrames` of the folder
         ``FrameCache`` chooses for this pipeline, or None: off, or a pipeline whose frames the
         key does not determine (said once among the messages)."""
-        text = self.value("FrameCache").strip()
-        folder = chosen_folder(text) if text else self.default_frame_cache()
-        if folder is None:
-            return None
-        found = upstream_scene(self)
-        if isinstance(found, str):
-            if found != self._frames_note:
-                vtkOutputWindow.GetInstance().DisplayText(
-                    f"{self.LABEL}: the frame cache is not used: {found}\n")
-            self._frames_note = found
-            return None
-        self._frames_note = None
-        filters, scene_folder, stamps = found
-        if self._scene[0] != stamps:
-            self._scene = (stamps, scene_digest(scene_folder))
-        made_for = (folder, self._scene[1], tuple(id(f) for f in filters))
-        if self._frames[0] != made_for:
-            warn = lambda text: vtkOutputWindow.GetInstance().DisplayWarningText(  # noqa: E731
-                f"{self.LABEL}: {text}\n")
-            self._frames = (made_for, SolverFrames(FrameStore(folder, warn=warn), scene_folder,
-                                                   (*filters, self), scene=self._scene[1]))
-        return self._frames[1]
+        return pipeline_frames(self, KEYED_FILTERS[:-1], SolverFrames)
 
     def _solve(self, model: MSSModel, bones: Bones, prepared: PreparedModel):
         """:func:`~muscle_mss.core.solver.solve`; the quasi-static method warm started from the
@@ -345,54 +328,3 @@ class MSSCollisionSolver(MuscleFilter):
             self._prepared_key, self._prepared_shape = key, shape
         self._prepared_identity = identities
         return self._prepared
-
-
-SCENE_READS = (MUSCLES_FILE, FIBRES_FILE, BONES_FILE, MOTION_FILE)
-PASSING = ("vtkPVPostFilter",)
-"""What ParaView puts behind every output port: it passes the data on (adding only arrays a view
-asks for)."""
-
-
-def upstream_scene(solver):
-    """``(filters, scene folder, stamps)`` of the pipeline feeding ``solver``: the Muscle MSS
-    filters upstream of it (one of each of the three before it) and the folder whose four
-    scene files its readers read, with the readers' output times
-    (``stamps``: the files are hashed again when a reader read again). A text saying why
-    not when anything else feeds it: another filter, a reader of other files, files of two
-    folders. Then the scene files and the properties do not determine the frame."""
-    filters, files, stamps, seen, stack = {}, {}, [], {}, [solver]
-    while stack:
-        algorithm = stack.pop()
-        for port in range(algorithm.GetNumberOfInputPorts()):
-            for c in range(algorithm.GetNumberOfInputConnections(port)):
-                producer = algorithm.GetInputConnection(port, c).GetProducer()
-                if producer.__this__ in seen:      # the C++ object: wrappers come and go
-                    continue
-                seen[producer.__this__] = producer
-                if producer.GetClassName() in PASSING:
-                    stack.append(producer)
-                    continue
-                if isinstance(producer, MuscleFilter):
-                    name = filter_name(producer)
-                    if name not in KEYED_FILTERS[:-1] or name in filters:
-                        return f"{producer.LABEL} feeds it where the scene's filters do"
-                    filters[name] = producer
-                    stack.append(producer)
-                    continue
-                names = reader_files(producer)
-                if names is None or producer.GetNumberOfInputPorts() > 0 or len(names) != 1:
-                    return (f"{producer.GetClassName()} feeds it, not a reader of one scene "
-                            "file")
-                path = os.path.abspath(names[0])
-                if os.path.basename(path) not in SCENE_READS or \
-                        files.get(os.path.basename(path), path) != path:
-                    return f"a reader of {names[0]} feeds it, not one of {', '.join(SCENE_READS)}"
-                files[os.path.basename(path)] = path
-                data = producer.GetOutputDataObject(0)
-                stamps.append((path, data.GetMTime() if data is not None else 0))
-    folders = {os.path.dirname(p) for p in files.values()}
-    if len(files) != len(SCENE_READS) or len(folders) != 1:
-        return "its readers do not read the four files of one scene folder"
-    if set(filters) != set(KEYED_FILTERS[:-1]):
-        return f"it is not fed by the {', '.join(KEYED_FILTERS[:-1])}"
-    return (tuple(filters[n] for n in KEYED_FILTERS[:-1]), folders.pop(), tuple(sorted(stamps)))

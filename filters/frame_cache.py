@@ -6,13 +6,16 @@ the properties of the solver and of the filters before it, and the time, so it i
 digest of exactly those and of the numerics' version, and any run that asks for the same frame
 loads it instead of solving it again (``muscle-mss run`` / ``demo`` / ``study``, the batch, a
 resumed run, the solver in ParaView through its ``FrameCache`` property:
-:data:`FRAME_CACHE_PROPERTY`).
+:data:`FRAME_CACHE_PROPERTY`). Its deformed surfaces (what the MVC Surface Deformer computes of
+it: :class:`~muscle_mss.filters.pipeline_frames.SurfaceFrames`) are kept beside it, keyed by the same and the deformer's
+properties; the Volume-Error Probe, which has no property, measures every frame.
 
 * **Key** (:func:`frame_key`): the cache format; the package version and a digest of the
   ``.py`` files of ``core/`` and ``filters/`` (the numerics); a digest of the bytes of every
   scene file the run reads (:func:`scene_digest`); every property of the Fibre Resampler, the
-  Spring Builder, the Rigid Pose Transform and the solver with its effective value, defaults
-  included, but ``FrameCache`` (:func:`filter_properties`); the time (its exact float). The
+  Spring Builder, the Rigid Pose Transform and the solver (and for the surfaces, the MVC
+  Surface Deformer) with its effective value, defaults included, but ``FrameCache``
+  (:func:`filter_properties`); the time (its exact float). The
   same scene and properties give the same key in ``muscle-mss run`` and in ParaView.
   Not the Python, Numba or NumPy version: the venv and ParaView's Python share frames (their
   results agree to rounding, not bitwise); each entry records the runtime that solved it.
@@ -41,9 +44,7 @@ Nothing here imports VTK.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import hashlib
-import importlib
 import io
 import json
 import os
@@ -65,7 +66,8 @@ ENVIRONMENT = "MUSCLE_MSS_FRAME_CACHE"
 BOUND_ENVIRONMENT = "MUSCLE_MSS_FRAME_CACHE_BOUND"
 DEFAULT_BOUND = 2 * 1024 ** 3
 """Bytes the cache folder holds at most (2 GiB: the demo thigh's walk at the defaults is 21
-frames of 0.8 MiB, 17 MiB, so some 120 walks; benchmarks/results/review.md)."""
+solved frames of 0.8 MiB and their deformed surfaces of 0.56 MiB, 29 MiB, so some 70 walks;
+benchmarks/results/review.md)."""
 OFF = "off"
 STALE_TEMPORARY_SECONDS = 3600.0
 """A temporary file older than this was left by a writer that was killed: removed."""
@@ -76,7 +78,8 @@ FRAME_CACHE_PROPERTY = Property(
     "FrameCache", "string", "",
     "Where solved frames are kept and looked up: a frame solved before with the same scene "
     "files, the same properties of this filter and of the filters before it, and the same time "
-    "is loaded instead of solved (from the frames muscle-mss run or demo solved, too). Empty "
+    "is loaded instead of solved (from the frames muscle-mss run or demo solved, too); the MVC "
+    "Surface Deformer after this filter keeps its deformed surfaces there too. Empty "
     "(the default): the user's frame cache, $MUSCLE_MSS_FRAME_CACHE if set, else "
     "~/.cache/muscle-mss/frames, where muscle-mss run keeps its frames (in a plain VTK "
     "pipeline outside ParaView: none); a folder; or off: every frame solved, nothing written. "
@@ -166,9 +169,13 @@ def scene_digest(folder) -> str:
 
 
 KEYED_FILTERS = ("FibreResampler", "SpringBuilder", "RigidPoseTransform", "MSSCollisionSolver")
-"""The filters whose properties determine a frame: the solver and those upstream of it. The
-MVC Surface Deformer and the Volume-Error Probe run after the solve on every frame, loaded or
-solved, so theirs are not in the key (and the solver in ParaView cannot see them)."""
+"""The filters whose properties determine a solved frame: the solver and those upstream of it
+(the solver in ParaView cannot see those after it)."""
+SURFACE_KEYED_FILTERS = KEYED_FILTERS + ("MVCSurfaceDeformer",)
+"""The filters whose properties determine a frame's deformed surfaces (:class:`~.pipeline_frames.SurfaceFrames`).
+The Volume-Error Probe after them has no property and measures every frame, loaded or not."""
+SURFACES = "surfaces"
+"""The ``stage`` of a deformed surfaces' entry in its key (a solved frame's key has none)."""
 NOT_KEYED = frozenset({"FrameCache"})
 """Properties that do not change a frame: where it is kept."""
 
@@ -181,14 +188,14 @@ def filter_name(f) -> str:
                 type(f).__name__)
 
 
-def filter_properties(filters) -> dict:
-    """``{filter: {property: value}}``: every property of those of ``filters`` in
-    :data:`KEYED_FILTERS` but :data:`NOT_KEYED` with its effective value, an enum as its
-    choice's text, a number as stored (a float's repr is exact)."""
+def filter_properties(filters, keyed=KEYED_FILTERS) -> dict:
+    """``{filter: {property: value}}``: every property of those of ``filters`` in ``keyed``
+    but :data:`NOT_KEYED` with its effective value, an enum as its choice's text, a number as
+    stored (a float's repr is exact)."""
     table = {}
     for f in filters:
         name = filter_name(f)
-        if name not in KEYED_FILTERS:
+        if name not in keyed:
             continue
         values = {}
         for prop in f.PROPERTIES:
@@ -200,11 +207,15 @@ def filter_properties(filters) -> dict:
     return table
 
 
-def frame_key(scene: str, filters, time: float) -> dict:
+def frame_key(scene: str, filters, time: float, stage: str | None = None) -> dict:
     """The key of the frame at ``time`` of the scene whose :func:`scene_digest` is ``scene``
-    through ``filters`` (the pipeline's filters, their properties as they are now)."""
-    return {"format": FORMAT, "numerics": numerics_version(), "scene": scene,
-            "properties": filter_properties(filters), "time": float(time).hex()}
+    through ``filters`` (the pipeline's filters, their properties as they are now): its solved
+    particles, or with ``stage`` :data:`SURFACES` its deformed surfaces."""
+    key = {"format": FORMAT, "numerics": numerics_version(), "scene": scene,
+           "properties": filter_properties(
+               filters, SURFACE_KEYED_FILTERS if stage == SURFACES else KEYED_FILTERS),
+           "time": float(time).hex()}
+    return key if stage is None else {**key, "stage": stage}
 
 
 def key_digest(key: dict) -> str:
@@ -217,35 +228,6 @@ def _canonical(value) -> bytes:
 
 
 # ---- entries -------------------------------------------------------------------------------
-
-def result_parts(result) -> tuple:
-    """``(arrays, scalars)`` of a solver result (a :class:`~muscle_mss.core.model.SolveResult`
-    dataclass): its arrays and NumPy scalars (as 0-d arrays, keeping their dtype) for the
-    payload, the rest (text, Python numbers, dicts, None) and its class for the header."""
-    arrays, scalars = {}, {"__class__": f"{type(result).__module__}:{type(result).__qualname__}"}
-    for f in dataclasses.fields(result):
-        value = getattr(result, f.name)
-        if isinstance(value, (np.ndarray, np.generic)):
-            arrays[f.name] = np.asarray(value)
-        elif isinstance(value, dict):
-            scalars[f.name] = {k: v.item() if isinstance(v, np.generic) else v
-                               for k, v in value.items()}
-        else:
-            scalars[f.name] = value
-    return arrays, scalars
-
-
-def result_from_parts(arrays: dict, scalars: dict):
-    """The solver result :func:`result_parts` took apart."""
-    module, _, name = scalars["__class__"].partition(":")
-    if not module.startswith("muscle_mss.core."):
-        raise DamagedEntry(f"names the class {scalars['__class__']}, not a solver result")
-    cls = getattr(importlib.import_module(module), name)
-    values = {k: v for k, v in scalars.items() if k != "__class__"}
-    for k, v in arrays.items():
-        values[k] = v[()] if v.ndim == 0 else v
-    return cls(**values)
-
 
 def encode_entry(key: dict, arrays: dict, scalars: dict) -> bytes:
     """An entry's bytes: :data:`MAGIC`, the header's length (8 bytes, little endian), the JSON
@@ -398,70 +380,3 @@ class FrameStore:
                         os.remove(entry.path)
                         count += entry.name.endswith(SUFFIX)
         return count, size
-
-
-class SolverFrames:
-    """A :class:`FrameStore` bound to a pipeline: what the MSS Collision Solver asks at each
-    solve (:meth:`load`, :meth:`save` by time), keyed by the scene's files (hashed once, or
-    their digest ``scene``) and the ``filters``' properties as they are at that moment (a study changes the solver's
-    between solves). Counts ``loaded``, ``solved`` (saved), ``damaged`` and ``uncached``
-    (solves whose answer depends on more than the key)."""
-
-    def __init__(self, cache: FrameStore, scene_folder, filters, scene: str | None = None):
-        self.cache = cache
-        self.scene = scene_digest(scene_folder) if scene is None else scene
-        self.filters = tuple(filters)
-        self.loaded = self.solved = self.uncached = 0
-        self._told = False
-
-    def cacheable(self) -> bool:
-        """Whether the solver's answer is a function of the key (the solver's
-        ``history_dependence``: not when it starts from the frame solved before, nor when it
-        stops on the clock)."""
-        solver = next(f for f in self.filters if hasattr(f, "history_dependence"))
-        reason = solver.history_dependence()
-        if reason and not self._told:
-            self._told = True
-            self.cache.warn(f"note: the frame cache is not used: {reason}, so a stored frame "
-                            "would not be the one solved now")
-        return reason is None
-
-    def key(self, time: float) -> dict:
-        return frame_key(self.scene, self.filters, time)
-
-    def load(self, time: float):
-        """The solver result stored for ``time``, or None (then the solver solves)."""
-        if not self.cacheable():
-            self.uncached += 1
-            return None
-        parts = self.cache.load(self.key(time))
-        if parts is None:
-            return None
-        try:
-            result = result_from_parts(*parts)
-        except (DamagedEntry, TypeError, ValueError, KeyError, AttributeError,
-                ImportError) as err:
-            self.cache.warn(f"warning: frame cache entry {self.cache.path(self.key(time))} "
-                            f"does not hold a solver result ({err}); solving the frame again")
-            return None
-        self.loaded += 1
-        return result
-
-    def save(self, time: float, result) -> None:
-        """Store the solver ``result`` of ``time`` (nothing when it is not cacheable)."""
-        self.solved += 1
-        if self.cacheable():
-            self.cache.save(self.key(time), *result_parts(result))
-
-    def summary(self) -> str:
-        """``frame cache: 21 of 21 frames loaded, 0 solved (DIR)``."""
-        total = self.loaded + self.solved
-        return (f"frame cache: {self.loaded} of {total} frames loaded, {self.solved} solved "
-                f"({self.cache.folder})")
-
-
-def frames_for(option, scene_folder, filters):
-    """A :class:`SolverFrames` for the cache ``option`` chooses (:func:`chosen_folder`), or
-    None when it is off."""
-    folder = chosen_folder(option)
-    return None if folder is None else SolverFrames(FrameStore(folder), scene_folder, filters)

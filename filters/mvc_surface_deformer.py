@@ -35,9 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from muscle_mss.core import mvc
-from muscle_mss.core.bones.distance import BoneFieldSet, push_out_of_bones
+from muscle_mss.core.bones.distance import BoneFieldSet
 from muscle_mss.core.fibre_shortening import kept_shape_lengths
-from muscle_mss.core.bones.exact_distance import exact_signed_distances, push_out_exactly
+from muscle_mss.core.bones.exact_distance import exact_signed_distances
 from muscle_mss.core.bones.field_sampling import DEFAULT_SPACING, bone_distance_field
 from muscle_mss.core.cage import (Cage, fibre_polylines, muscle_cage, polyline_chords,
                                   polyline_lengths)
@@ -46,14 +46,16 @@ from muscle_mss.core.disk_store import DiskStore, array_digest
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.contacts.muscle_overlap import vertices_in_other_muscles
 from muscle_mss.core.mvc import bounded_coordinates, mvc_deform
-from muscle_mss.core.rigid_fit import fitted_rigid_transform
 from muscle_mss.core.surface_normals import point_normals
 from muscle_mss.core.bones.triangle_distance import prepared_surface
 
 from . import array_names as A
 from . import vtk_arrays as V
 from .base import MuscleFilter, Port
-from .bone_sets import INSIDE_TOLERANCE, cached_bone_field, field_surface
+from .bone_sets import (INSIDE_TOLERANCE, cached_bone_field, composed_transforms,
+                        field_surface, keep_out_of_bones, posed_bone_transforms)
+from .frame_cache import KEYED_FILTERS
+from .pipeline_frames import SurfaceFrames, pipeline_frames
 from muscle_mss.core.properties import Property
 
 # Share of the progress bar taken by the weights when they are (re)computed.
@@ -127,7 +129,17 @@ class MVCSurfaceDeformer(MuscleFilter):
 
     ``weight_computations`` counts how many times the weights were computed: once, and again
     only after a change of RestSurfaces or RestModel.
+
+    Frame cache: fed by the scene's readers through the Muscle MSS filters, the deformed
+    surface points and their reports (the push out of the bones, the drift, the vertices in
+    other muscles: most of a frame's cost) are kept in the MSS Collision Solver's frame cache
+    folder (its ``FrameCache``) under the solver's key and this filter's properties
+    (:class:`~muscle_mss.filters.pipeline_frames.SurfaceFrames`), or in ``frames`` where an
+    application sets one (``muscle-mss run``: its ``--cache``). ``frame_counts`` counts the
+    frames loaded and computed.
     """
+
+    frames = None
 
     LABEL = "MVC Surface Deformer"
     HELP = ("Moves each rest muscle surface with its particles: every surface vertex keeps its "
@@ -196,6 +208,10 @@ class MVCSurfaceDeformer(MuscleFilter):
         self.field_computations = 0
         self._outside_key = None
         self._outside = None
+        self.frame_counts = {"loaded": 0, "computed": 0}
+        self._frames = (None, None)     # (what they were made for, SurfaceFrames or None)
+        self._scene = (None, None)      # (the readers' files and outputs, their digest)
+        self._frames_note = None
 
     # ---- the cached bone side ------------------------------------------------------------------
     def bone_fields(self, rest_bones):
@@ -275,18 +291,19 @@ class MVCSurfaceDeformer(MuscleFilter):
         return bindings
 
     # ---- every time point ----------------------------------------------------------------------
+    def _surface_frames(self):
+        """Where this frame's surfaces are kept: ``frames``, else the solver's frame cache
+        folder when the pipeline's frames are keyed, else None."""
+        if self.frames is not None:
+            return self.frames
+        return pipeline_frames(self, KEYED_FILTERS, SurfaceFrames)
+
     def execute(self, inputs, outputs):
         solved, rest_surfaces, rest_model, rest_bones, posed_bones = inputs
         bindings = self.bindings(rest_surfaces, rest_model)
-        bones = None
         if (rest_bones is None) != (posed_bones is None):
             raise MuscleMSSError("connect both RestBones (bones.vtm) and PosedBones (the Rigid "
                                  "Pose Transform's PosedBones), or neither")
-        if rest_bones is not None:
-            fields, rest_points, frames = self.bone_fields(rest_bones)
-            bones = (fields, _after(posed_bone_transforms(rest_points, posed_bones), frames),
-                     self._outside_at_rest(bindings, fields, frames),
-                     self.value("KeepOutOfBones"))
         blocks = V.blocks(solved, where="SolvedModel")
         names = [n for n, _ in blocks]
         for name in bindings:
@@ -298,20 +315,17 @@ class MVCSurfaceDeformer(MuscleFilter):
                 raise MuscleMSSError(f"SolvedModel block '{name}': RestModel has no muscle of "
                                      "that name; block names must match")
         points = [_deformed_points(name, block, bindings[name]) for name, block in blocks]
-        deformed = [d for _, d in points]
-        reports = [{} for _ in names]
-        if bones is not None:
-            fields, transforms, outside, push = bones
-            deformed, reports = _keep_out_of_bones(
-                deformed, fields, transforms, np.concatenate([outside[n] for n in names]), push)
-        for name, (current, surface_points), report in zip(names, points, reports):
-            report.update(_drift_report(bindings[name], current, surface_points))
-        in_other, depth = vertices_in_other_muscles(
-            [(d, bindings[name].triangles) for name, d in zip(names, deformed)],
-            [bindings[name].rest_points for name in names])
-        for report, count, deepest in zip(reports, in_other, depth):
-            report.update({A.IN_OTHER_MUSCLE_VERTICES: int(count),
-                           A.IN_OTHER_MUSCLE_DEPTH_MM: float(deepest)})
+        frames, time = self._surface_frames(), self.requested_time()
+        stored = frames.load(time) if frames is not None and time is not None else None
+        if stored is not None and [len(d) for d in stored[0]] == [len(p) for _, p in points]:
+            deformed, reports = stored
+            self.frame_counts["loaded"] += 1
+        else:
+            deformed, reports = self._deformed(names, points, bindings, rest_bones,
+                                               posed_bones)
+            self.frame_counts["computed"] += 1
+            if frames is not None and time is not None:
+                frames.save(time, (deformed, reports))
         surfaces, fibres = [], []
         for name, (current, _), surface_points, report in zip(names, points, deformed, reports):
             surface, polylines = _muscle_outputs(name, bindings[name], current, surface_points,
@@ -321,6 +335,29 @@ class MVCSurfaceDeformer(MuscleFilter):
         V.fill_multiblock(outputs[0], surfaces)
         V.fill_multiblock(outputs[1], fibres)
         self.progress(1.0)
+
+    def _deformed(self, names, points, bindings, rest_bones, posed_bones) -> tuple:
+        """``(surface points, reports)`` per muscle: the deformed surfaces ``points`` gives
+        (``(particles, surface vertices)`` per muscle) pushed out of the bones they newly
+        entered, and what each reports (the push, the cage drift, the vertices inside other
+        muscles)."""
+        deformed = [d for _, d in points]
+        reports = [{} for _ in names]
+        if rest_bones is not None:
+            fields, rest_points, frames = self.bone_fields(rest_bones)
+            outside = self._outside_at_rest(bindings, fields, frames)
+            deformed, reports = keep_out_of_bones(
+                deformed, fields, composed_transforms(posed_bone_transforms(rest_points, posed_bones), frames),
+                np.concatenate([outside[n] for n in names]), self.value("KeepOutOfBones"))
+        for name, (current, surface_points), report in zip(names, points, reports):
+            report.update(_drift_report(bindings[name], current, surface_points))
+        in_other, depth = vertices_in_other_muscles(
+            [(d, bindings[name].triangles) for name, d in zip(names, deformed)],
+            [bindings[name].rest_points for name in names])
+        for report, count, deepest in zip(reports, in_other, depth):
+            report.update({A.IN_OTHER_MUSCLE_VERTICES: int(count),
+                           A.IN_OTHER_MUSCLE_DEPTH_MM: float(deepest)})
+        return deformed, reports
 
 
 def _modification_key(data, where):
@@ -373,68 +410,6 @@ def _bind_muscle(name, surface, model) -> MuscleBinding:
                          polyline_chords(rest_positions, order, offsets),
                          np.ascontiguousarray(triangles),
                          fibres, cage_distances(rest_cage, cage.triangles, rest_points))
-
-
-def posed_bone_transforms(rest_points: dict, posed_bones) -> np.ndarray:
-    """(b, 3, 4) rest-to-posed transforms of the bones ``rest_points`` ({name: (n, 3) mm}),
-    fitted to the blocks of the same names in ``posed_bones``."""
-    posed = dict(V.polydata_blocks(posed_bones, "PosedBones", "a bone's triangle surface"))
-    transforms = []
-    for name, points in rest_points.items():
-        if name not in posed:
-            raise MuscleMSSError(f"PosedBones: has no block '{name}'; it must hold the bones of "
-                                 "RestBones (block names must match)")
-        transforms.append(fitted_rigid_transform(points, V.points_of(posed[name]),
-                                                 where=f"PosedBones block '{name}'"))
-    return np.array(transforms).reshape(-1, 3, 4)
-
-
-def _after(outer, inner) -> np.ndarray:
-    """(b, 3, 4) transforms: each of ``inner`` (b, 3, 4) followed by the same bone's ``outer``."""
-    rotation = outer[:, :, :3] @ inner[:, :, :3]
-    shift = np.einsum("bij,bj->bi", outer[:, :, :3], inner[:, :, 3]) + outer[:, :, 3]
-    return np.concatenate([rotation, shift[:, :, None]], axis=2)
-
-
-def new_in_bones(fields, transforms, points, outside):
-    """``(inside (n,) bool, depth (n,) mm)`` of the ``points`` (n, 3): which are inside a posed
-    bone they were ``outside`` (n, b) at rest, and how deep (0 for the others), by the bones'
-    exact distance near their surfaces."""
-    distance = exact_signed_distances(fields, points, transforms)
-    new = (distance < -INSIDE_TOLERANCE) & outside
-    return new.any(axis=1), np.where(new, -distance, 0.0).max(axis=1, initial=0.0)
-
-
-def _keep_out_of_bones(deformed: list, fields, transforms, outside, push):
-    """The muscles' ``deformed`` surface vertices (a list of (v_i, 3) arrays, mm) with those
-    newly inside a bone pushed out (when ``push``), and for each muscle what to report:
-    ``{array or field name: value}``. ``outside`` (sum v_i, b) bool: which vertex was outside
-    which bone at rest, the muscles' in turn. All muscles go through each kernel at once (one
-    parallel region each, not one per muscle)."""
-    sizes = np.array([len(d) for d in deformed])
-    starts = np.concatenate([[0], np.cumsum(sizes)])
-    muscle = np.repeat(np.arange(len(sizes)), sizes)
-    points = np.concatenate(deformed)
-    inside, depth = new_in_bones(fields, transforms, points, outside)
-    count = np.bincount(muscle[inside], minlength=len(sizes))
-    deepest = np.maximum.reduceat(depth, starts[:-1])
-    count_after, deepest_after = count, deepest
-    if push and inside.any():
-        # only the vertices newly inside move (a vertex already out gets exactly 0)
-        points[inside] += push_out_of_bones(fields, points[inside], None, transforms,
-                                            active=outside[inside], tolerance=INSIDE_TOLERANCE)
-        # the fields' push leaves a vertex up to their error inside a thin bone: finish exactly
-        points[inside] += push_out_exactly(fields, points[inside], transforms, outside[inside])
-        still, depth_after = new_in_bones(fields, transforms, points[inside], outside[inside])
-        count_after = np.bincount(muscle[inside][still], minlength=len(sizes))
-        deepest_after = np.zeros(len(sizes))
-        np.maximum.at(deepest_after, muscle[inside], depth_after)
-    reports = [{A.NEW_IN_BONE_DEPTH: depth[a:b], A.NEW_IN_BONE_VERTICES: int(count[i]),
-                A.NEW_IN_BONE_DEPTH_MM: float(deepest[i]),
-                A.NEW_IN_BONE_VERTICES_AFTER: int(count_after[i]),
-                A.NEW_IN_BONE_DEPTH_AFTER_MM: float(deepest_after[i])}
-               for i, (a, b) in enumerate(zip(starts[:-1], starts[1:]))]
-    return [points[a:b] for a, b in zip(starts[:-1], starts[1:])], reports
 
 
 def _deformed_points(name, block, binding: MuscleBinding):

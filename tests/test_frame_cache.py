@@ -47,19 +47,23 @@ def other_value(prop, value):
 
 @pytest.mark.parametrize("filter_name,prop", all_properties(),
                          ids=[f"{n}.{p.name}" for n, p in all_properties()])
-def test_changing_any_property_of_the_solver_or_a_filter_before_it_changes_the_key(
-        filter_name, prop):
-    """Every property of the filters a frame depends on is in its key; those of the two
-    filters after the solver (they run on every frame, loaded or solved: the next test) and
-    FrameCache (where it is kept) are not."""
+def test_changing_any_property_of_any_filter_changes_the_keys_after_it(filter_name, prop):
+    """Every property of the six filters is in the key of what comes after it: a solved
+    frame's key holds the solver's and those of the filters before it, the deformed surfaces'
+    key the MVC Surface Deformer's too; FrameCache (where frames are kept) is in none. The
+    Volume-Error Probe has no property: it measures every frame, loaded or computed."""
     filters = filter_instances()
-    before = F.frame_key("scene", filters, 0.5)
+    before = {stage: F.frame_key("scene", filters, 0.5, stage) for stage in (None, F.SURFACES)}
     owner = filters[FILTER_NAMES.index(filter_name)]
     getattr(owner, "Set" + prop.name)(other_value(prop, owner.value(prop.name)))
-    after = F.frame_key("scene", filters, 0.5)
-    keyed = filter_name in F.KEYED_FILTERS and prop.name not in F.NOT_KEYED
-    assert (F.key_digest(after) != F.key_digest(before)) is keyed
-    assert F.key_digest(F.frame_key("scene", filter_instances(), 0.5)) == F.key_digest(before)
+    for stage, keyed in ((None, F.KEYED_FILTERS), (F.SURFACES, F.SURFACE_KEYED_FILTERS)):
+        after = F.frame_key("scene", filters, 0.5, stage)
+        changes = filter_name in keyed and prop.name not in F.NOT_KEYED
+        assert (F.key_digest(after) != F.key_digest(before[stage])) is changes
+        assert F.key_digest(F.frame_key("scene", filter_instances(), 0.5, stage)) == \
+            F.key_digest(before[stage])
+    assert set(FILTER_NAMES) - set(F.SURFACE_KEYED_FILTERS) == {"VolumeErrorProbe"}
+    assert not filters[FILTER_NAMES.index("VolumeErrorProbe")].PROPERTIES
 
 
 def test_the_key_names_each_filter_by_its_class_also_in_a_subclass():
@@ -196,7 +200,7 @@ def test_the_same_run_in_another_process_loads_every_frame(first_run, small_scen
     out, cache, text = first_run
     assert "frame cache: 0 of 21 frames loaded, 21 solved" in text
     entries = len(F.FrameStore(str(cache)).entries())
-    assert entries == 21
+    assert entries == 2 * 21        # each time point's solved frame and deformed surfaces
     second = subprocess.run(
         [sys.executable, "-m", "muscle_mss.app.cli", "run", str(small_scene_dir),
          str(tmp_path / "out"), *RUN, "--cache", str(cache)],
@@ -207,13 +211,21 @@ def test_the_same_run_in_another_process_loads_every_frame(first_run, small_scen
     assert_same_outputs(out, tmp_path / "out", solved_again=False)
 
 
+def entry_key(path) -> dict:
+    """The key in the header of the entry file ``path``."""
+    data = open(path, "rb").read()
+    start = len(F.MAGIC) + 8
+    return json.loads(data[start:start + struct.unpack("<Q", data[len(F.MAGIC):start])[0]])["key"]
+
+
 def test_a_damaged_entry_is_reported_and_solved_again(first_run, small_scene_dir, tmp_path,
                                                       capsys):
     from muscle_mss.app.cli import main
     out, cache, _ = first_run
     copy = tmp_path / "cache"
     shutil.copytree(cache, copy)
-    victim = F.FrameStore(str(copy)).entries()[0][2]
+    victim = next(path for _, _, path in F.FrameStore(str(copy)).entries()
+                  if "stage" not in entry_key(path))             # a solved frame's
     size = os.path.getsize(victim)
     with open(victim, "r+b") as f:
         f.truncate(size // 2)
@@ -223,8 +235,7 @@ def test_a_damaged_entry_is_reported_and_solved_again(first_run, small_scene_dir
     assert f"warning: frame cache entry {victim} is damaged (truncated" in captured.err
     assert "frame cache: 20 of 21 frames loaded, 1 solved" in captured.out
     data = open(victim, "rb").read()            # written again, whole
-    start = len(F.MAGIC) + 8
-    key = json.loads(data[start:start + struct.unpack("<Q", data[len(F.MAGIC):start])[0]])["key"]
+    key = entry_key(victim)
     F.decode_entry(data, key)
     assert os.path.basename(victim) == F.key_digest(key) + F.SUFFIX
     assert_same_outputs(out, tmp_path / "out")
@@ -241,9 +252,9 @@ def test_cache_off_writes_nothing(small_scene_dir, tmp_path, monkeypatch, capsys
     assert "frame cache" not in capsys.readouterr().out and not frames.exists()
     # without --cache the user's cache folder is used: the check above can fail
     assert main(["run", str(small_scene_dir), str(tmp_path / "on"), *RUN, "--time", "0.5"]) == 0
-    assert len(F.FrameStore(str(frames)).entries()) == 1
+    assert len(F.FrameStore(str(frames)).entries()) == 2       # the frame and its surfaces
     assert main(["cache", "info"]) == 0
-    assert f"frame cache {frames}: 1 entries" in capsys.readouterr().out
+    assert f"frame cache {frames}: 2 entries" in capsys.readouterr().out
     assert main(["cache", "clear"]) == 0 and not F.FrameStore(str(frames)).entries()
 
 
@@ -300,36 +311,58 @@ def test_the_solvers_frame_cache_property_loads_what_it_stored_in_a_new_pipeline
         np.testing.assert_array_equal(first, second)
 
 
-def after_the_solver():
-    return [(name, prop) for name, prop in all_properties() if name not in F.KEYED_FILTERS]
-
-
-@pytest.mark.parametrize("filter_name,prop", after_the_solver(),
-                         ids=[f"{n}.{p.name}" for n, p in after_the_solver()])
-def test_a_property_after_the_solver_changes_what_a_loaded_frame_shows(
-        filter_name, prop, small_scene_dir, tmp_path):
-    """The filters after the solver (the MVC Surface Deformer; the Volume-Error Probe has no
-    property) are not in the key because they are not cached: they run on every frame, loaded
-    or solved. Changing one of their properties never shows a stale result: the frame is
-    loaded and what they make of it is what a pipeline without a cache makes."""
-    from muscle_mss.app.motion_run import update_at
+def shown_surfaces(surfaces) -> dict:
+    """``{(muscle, what): array}``: each deformed surface's points, point data and field data."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
     from muscle_mss.filters import vtk_arrays as V
+    shown = {}
+    for name, block in V.blocks(surfaces):
+        shown[name, "points"] = V.points_of(block)
+        for kind, data in (("point", block.GetPointData()), ("field", block.GetFieldData())):
+            for k in range(data.GetNumberOfArrays()):
+                array = data.GetAbstractArray(k)
+                shown[name, f"{kind} {array.GetName()}"] = (
+                    array.GetValue(0) if array.IsA("vtkStringArray") else vtk_to_numpy(array))
+    return shown
+
+
+def assert_same_surfaces(first: dict, second: dict):
+    assert list(first) == list(second)
+    for key in first:
+        np.testing.assert_array_equal(first[key], second[key], err_msg=str(key))
+
+
+def deformer_properties():
+    return [prop for name, prop in all_properties() if name == "MVCSurfaceDeformer"]
+
+
+@pytest.mark.parametrize("prop", deformer_properties(),
+                         ids=[p.name for p in deformer_properties()])
+def test_the_deformed_surfaces_are_loaded_and_a_deformer_property_computes_them_again(
+        prop, small_scene_dir, tmp_path):
+    """A new pipeline with the same properties loads the solved frame and its deformed
+    surfaces, bitwise what computing them gives; with one of the MVC Surface Deformer's
+    properties changed it loads the solved frame and computes the surfaces again, as a
+    pipeline without a cache does."""
+    from muscle_mss.app.motion_run import update_at
     cache, t = str(tmp_path / "cache"), 3
     first = _plain_pipeline(small_scene_dir, cache)
-    update_at(first.probe, 0, first.times[t])
-    owner = {"MVCSurfaceDeformer": "deformer", "VolumeErrorProbe": "probe"}[filter_name]
-    changed = other_value(prop, getattr(first, owner).value(prop.name))
+    computed = shown_surfaces(update_at(first.probe, 0, first.times[t]))
+    again = _plain_pipeline(small_scene_dir, cache)
+    assert_same_surfaces(shown_surfaces(update_at(again.probe, 0, again.times[t])), computed)
+    assert again.solver.frame_counts == {"loaded": 1, "solved": 0}
+    assert again.deformer.frame_counts == {"loaded": 1, "computed": 0}
+    changed = other_value(prop, first.deformer.value(prop.name))
     shown = []
     for frame_cache in (cache, "off"):
         p = _plain_pipeline(small_scene_dir, frame_cache)
-        getattr(getattr(p, owner), "Set" + prop.name)(changed)
-        surfaces = update_at(p.probe, 0, p.times[t])
-        shown.append({n: V.points_of(b) for n, b in V.blocks(surfaces)})
+        getattr(p.deformer, "Set" + prop.name)(changed)
+        shown.append(shown_surfaces(update_at(p.probe, 0, p.times[t])))
+        assert p.deformer.frame_counts == {"loaded": 0, "computed": 1}
         assert p.solver.frame_counts == ({"loaded": 1, "solved": 0} if frame_cache != "off"
                                          else {"loaded": 0, "solved": 1})
-    assert shown[0].keys() == shown[1].keys()
-    for name in shown[0]:
-        np.testing.assert_array_equal(shown[0][name], shown[1][name])
+    assert_same_surfaces(*shown)
+    assert len(F.FrameStore(cache).entries()) == 3     # the frame, its surfaces twice
 
 
 def test_frame_cache_off_or_empty_in_a_plain_pipeline_writes_nothing(small_scene_dir, tmp_path,
@@ -347,7 +380,7 @@ def test_frame_cache_off_or_empty_in_a_plain_pipeline_writes_nothing(small_scene
     assert not folder.exists()
     p = _plain_pipeline(small_scene_dir, str(folder))     # the check above can fail
     update_at(p.probe, 0, p.times[1])
-    assert len(F.FrameStore(str(folder)).entries()) == 1
+    assert len(F.FrameStore(str(folder)).entries()) == 2
 
 
 def test_a_solver_fed_by_another_filter_than_the_scenes_does_not_use_the_cache(

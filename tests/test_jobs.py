@@ -55,7 +55,8 @@ def test_two_workers_write_the_files_of_one_process_and_fill_the_shared_cache(
     assert sorted(i for i, _, _ in steps) == list(range(21))
     assert [d for _, d, _ in steps] == list(range(1, 22)) and {t for _, _, t in steps} == {21}
     assert (pipeline.frames.loaded, pipeline.frames.solved) == (0, 21)
-    assert len([n for n in os.listdir(cache) if not n.startswith(".")]) == 21   # stored
+    # stored: each solved frame and its deformed surfaces
+    assert len([n for n in os.listdir(cache) if not n.startswith(".")]) == 2 * 21
     assert not [n for n in os.listdir(tmp_path / "two" / "series") if n.startswith(".")]
     # another process (this one) loads every frame the workers solved, to the same files
     again, _ = motion_run.run_motion(str(small_scene_dir), str(tmp_path / "three"), SETTINGS,
