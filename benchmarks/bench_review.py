@@ -130,9 +130,10 @@ def main() -> int:
               "", "| cores | frames' share, s | projected wall s |", "|---:|---:|---:|"]
     lines += [f"| {cores} | {handed_out(costs, cores):.1f} | {walls[cores]:.1f} |"
               for cores in PROJECTED_CORES]
-    lines += ["", f"The frame cache after: {entries} entries, {size / 2 ** 20:.1f} MiB "
-              f"({size / max(entries, 1) / 2 ** 20:.2f} MiB a frame). The finished folder's "
-              f"run printed: \"{steps[3][1][3]}\"."]
+    lines += ["", f"The frame cache after: {entries} entries (each time point's solved frame "
+              f"and its deformed surfaces), {size / 2 ** 20:.1f} MiB "
+              f"({size / max(len(costs), 1) / 2 ** 20:.2f} MiB a time point). The finished "
+              f"folder's run printed: \"{steps[3][1][3]}\"."]
     write_result(lines, "review.md")
     return 0
 
