@@ -37,6 +37,9 @@ share of its distance from the section's centre, at most this many times in all.
 TENDON_CELLS = 3.0
 """Fibres ending farther than this many cells from their attachment area's vertices (in a tendon
 thinner than a cell) are extended straight to it."""
+END_GAP = 1e-4
+"""Fibre ends closer than this share of the fibres' median length are moved apart (a hundred
+times :data:`.fibre_pieces.JOIN_TOLERANCE`)."""
 OUTLINE_BINS = 48
 """Angles at which the section's outline (its outermost cell centres, half a cell inside the
 surface) is taken around its centre."""
@@ -51,8 +54,9 @@ def concentric_disc(rows: int, cols: int) -> np.ndarray:
     x, y = (a.ravel() for a in np.meshgrid(u, v, indexing="ij"))
     wide = np.abs(x) > np.abs(y)
     radius = np.where(wide, x, y)
+    # (the centre of an odd grid, x = y = 0, has radius 0: any angle)
     angle = np.where(wide, np.pi / 4 * y / np.where(wide, x, 1.0),
-                     np.pi / 2 - np.pi / 4 * x / np.where(wide, 1.0, y))
+                     np.pi / 2 - np.pi / 4 * x / np.where(wide | (y == 0.0), 1.0, y))
     return np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=1)
 
 
@@ -192,6 +196,7 @@ def generate_fibres(points, triangles, origin_area, insertion_area, rows: int = 
     fibres = np.stack([resample(f, samples) for f in traced])
     _keep_inside(fibres, seeds, prepared_surface(points, triangles, where),
                  INSIDE_MARGIN * field.spacing)
+    _separate_ends(fibres)
     grid = np.stack(np.divmod(np.arange(rows * cols), cols), axis=1)
     return FibreSet.from_polylines(list(fibres), grid)
 
@@ -234,6 +239,22 @@ def _reaching_areas(fibres: list, points, areas, limit: float) -> list:
         fibres = [np.concatenate([t[None], f] if end == 0 else [f, t[None]])
                   for f, t in zip(fibres, targets)]
     return fibres
+
+
+def _separate_ends(fibres) -> None:
+    """Move the ends of ``fibres`` (F, S, 3) mm that lie within :data:`END_GAP` of their
+    length of another fibre's end back along their last segment, each by its own share of
+    it (up to a tenth), in place: streamlines funnelled into a small tendon patch can end a
+    hair apart, and fibres sharing an end read as the pieces of one fibre
+    (:mod:`.fibre_pieces`)."""
+    lengths = np.linalg.norm(np.diff(fibres, axis=1), axis=2).sum(axis=1)
+    gap = END_GAP * float(np.median(lengths))
+    for end, before in ((0, 1), (-1, -2)):
+        pairs = cKDTree(fibres[:, end]).query_pairs(gap, output_type="ndarray")
+        crowded = np.unique(pairs)
+        for rank, f in enumerate(crowded):
+            share = 0.1 * (rank + 1) / len(crowded)
+            fibres[f, end] += share * (fibres[f, before] - fibres[f, end])
 
 
 def _keep_inside(fibres, seeds, surface, margin: float) -> None:
