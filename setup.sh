@@ -33,15 +33,16 @@ if [ "$need_apt" = 1 ]; then
     xvfb xauth openmpi-bin python3-venv python3-pip >/dev/null
 fi
 
-# (an install whose muscle-mss command still names a module that moved is installed again)
-if ! .venv/bin/python -c "import importlib.metadata as m, muscle_mss.app.cli, pyvista, pytest
+# (an install whose muscle-mss command still names a module that moved, or without the opensim
+# extra of `muscle-mss import-opensim`, is installed again)
+if ! .venv/bin/python -c "import importlib.metadata as m, muscle_mss.app.cli, pyvista, pytest, opensim
 m.version('tbb')
 assert [e.value for e in m.entry_points(group='console_scripts', name='muscle-mss')] \\
     == ['muscle_mss.app.cli:main']" >/dev/null 2>&1; then
-  echo "setup: creating .venv with muscle-mss and its test extra" >&2
+  echo "setup: creating .venv with muscle-mss and its test and opensim extras" >&2
   python3 -m venv .venv
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e '.[test]'
+  .venv/bin/python -m pip install -q -e '.[test,opensim]'
 fi
 
 # Each Python keeps its kernels in a cache folder of its own (README "The first run").

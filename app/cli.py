@@ -1,6 +1,7 @@
 """The ``muscle-mss`` command: validate scenes, write the demo scene, run the demo and motions.
 
-``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss demo-scene OUT``
+``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss fibres SCENE`` writes
+its fibres from its muscle surfaces (:mod:`muscle_mss.app.scene_fibres`); ``muscle-mss demo-scene OUT``
 writes the deterministic demo thigh scene (``--region arm``: the elbow) and its ``preview.png``;
 ``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE
 OUT`` does the same for a user's scene (see :mod:`muscle_mss.app.run_output` for the files
@@ -8,6 +9,8 @@ written); ``muscle-mss study SCENE OUT`` writes the paper's experiments and the 
 study as ``OUT/report.html`` (:mod:`muscle_mss.app.study`); ``muscle-mss cache info|clear``
 shows or empties the frame cache (:mod:`muscle_mss.filters.frame_cache`), which ``--cache DIR|off``
 points elsewhere or turns off.
+``muscle-mss import-opensim MODEL.osim MOTION.mot OUT --muscles DIR`` writes a scene from an
+OpenSim model and muscle surface files (:mod:`muscle_mss.app.opensim_import`).
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.motion import farthest_pose_index
 from muscle_mss.core.scene import Scene
 
+from muscle_mss.filters.fibre_generator import DEFAULT_FIBRE_COUNT, DEFAULT_SAMPLES
 from muscle_mss.filters.fibre_resampler import DEFAULT_PARTICLES_PER_FIBRE
 from .demo_folder import (DEMO_REGIONS, DEMO_SIZES, REGION_THIGH, demo_region_motion,
                           write_demo_scene)
@@ -81,6 +85,14 @@ def attachment_report(scene: Scene) -> str:
     for muscle, ends in scene_attachments(scene).items():
         lines.append(f"  {muscle}: {describe(ends[ORIGIN])} -> {describe(ends[INSERTION])}")
     return "\n".join(lines)
+
+
+def cmd_fibres(args) -> int:
+    from .scene_fibres import generate_fibres_file
+    print(f"generating fibres for {args.scene}:", flush=True)
+    generate_fibres_file(args.scene, args.count, args.points, args.overwrite,
+                         lambda line: print(line, flush=True))
+    return 0
 
 
 def cmd_demo_scene(args) -> int:
@@ -339,6 +351,15 @@ def cmd_cache(args) -> int:
     return 0
 
 
+def cmd_import_opensim(args) -> int:
+    """``muscle-mss import-opensim``: a scene folder from an OpenSim model, its motion and a
+    folder of muscle surface files (:mod:`muscle_mss.app.opensim_import`)."""
+    from .opensim_import import import_opensim
+    import_opensim(args.model, args.motion, args.out, args.muscles, args.overwrite,
+                   args.muscle_units, log_level="error")
+    return 0
+
+
 def time_point_index(times, time: float) -> int:
     """Index of the time point nearest ``time`` (s); a time that is not finite or lies outside
     the motion is refused (ParaView's time slider clamps it with a warning instead)."""
@@ -368,6 +389,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("validate", help="check a scene folder against every rule of the format")
     p.add_argument("scene", help="scene folder (muscles.vtm, fibres.vtm, bones.vtm, motion.csv)")
     p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("fibres", help="write a scene's fibres.vtm from its muscle surfaces and "
+                                      "bones (the Fibre Generator)")
+    p.add_argument("scene", help="scene folder (muscles.vtm, bones.vtm, optional "
+                                 "attachments.csv)")
+    p.add_argument("--count", type=int, default=DEFAULT_FIBRE_COUNT,
+                   help="fibres per muscle, on the most nearly square grid (default "
+                        f"{DEFAULT_FIBRE_COUNT}: 8 x 8)")
+    p.add_argument("--points", type=int, default=DEFAULT_SAMPLES,
+                   help=f"points per fibre polyline (default {DEFAULT_SAMPLES})")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing fibres.vtm (refused without it)")
+    p.set_defaults(func=cmd_fibres)
 
     p = sub.add_parser("demo-scene", help="write a demo scene (thigh or arm) and preview.png")
     p.add_argument("out", help="folder to write")
@@ -414,6 +448,22 @@ def build_parser() -> argparse.ArgumentParser:
     add_cache_option(p)
     add_jobs_option(p)
     p.set_defaults(func=cmd_study)
+
+    p = sub.add_parser("import-opensim", help="a scene from an OpenSim model (bones from its "
+                                              "meshes, motion.csv from a .mot) and muscle files")
+    p.add_argument("model", help="the OpenSim model (.osim)")
+    p.add_argument("motion", help="its motion (.mot or .sto, e.g. inverse kinematics)")
+    p.add_argument("out", help="scene folder to write")
+    p.add_argument("--muscles", metavar="DIR",
+                   help="a folder of one surface file per muscle (STL, OBJ, PLY, VTK, VTP; "
+                        "name = file name without suffix) in the model's ground frame at its "
+                        "default pose: cleaned and written to muscles.vtm")
+    p.add_argument("--muscle-units", choices=("m", "mm", "auto"), default="auto",
+                   help="units of the muscle files (default auto: metres when a file's "
+                        "bounding box is under 5 units on every side, else mm)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the files an earlier import wrote in OUT (refused without it)")
+    p.set_defaults(func=cmd_import_opensim)
 
     p = sub.add_parser("cache", help="the frame cache: where it is, its entries and size "
                                      "(info), or remove its entries (clear)")

@@ -21,6 +21,7 @@ import numpy as np
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from muscle_mss.core.errors import MuscleMSSError
+from muscle_mss.core.attachment_areas import ATTACHMENTS_FILE
 from muscle_mss.core.scene import MOTION_FILE
 
 from muscle_mss.filters import array_names as A
@@ -30,7 +31,7 @@ from muscle_mss.filters.collision_solver import MSSCollisionSolver
 from muscle_mss.filters.fibre_resampler import FibreResampler
 from muscle_mss.filters.mvc_surface_deformer import MVCSurfaceDeformer
 from muscle_mss.filters.rigid_pose_transform import RigidPoseTransform
-from muscle_mss.filters.scene_io import scene_readers
+from muscle_mss.filters.scene_io import attachments_reader, scene_readers
 from muscle_mss.filters.spring_builder import SpringBuilder
 from muscle_mss.filters.volume_error_probe import SURFACE_COLUMNS, VolumeErrorProbe
 from .run_output import DEFAULT_COMPRESSOR, SERIES, write_time_point
@@ -88,8 +89,11 @@ def build_pipeline(scene_folder, settings: dict | None = None,
     solver = CachedCollisionSolver() if cache else MSSCollisionSolver()
     deformer, probe = MVCSurfaceDeformer(), VolumeErrorProbe()
     muscles, fibres, bones, motion = scene_readers(scene_folder)
+    attachments = attachments_reader(os.path.join(str(scene_folder), ATTACHMENTS_FILE))
     resampler.SetInputConnection(0, fibres.GetOutputPort())
     resampler.SetInputConnection(1, bones.GetOutputPort())
+    if attachments is not None:
+        resampler.SetInputConnection(2, attachments.GetOutputPort())
     springs.SetInputConnection(0, resampler.GetOutputPort())
     springs.SetInputConnection(1, muscles.GetOutputPort())
     springs.SetInputConnection(2, bones.GetOutputPort())

@@ -38,6 +38,7 @@ from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.spring_builder import DEFAULT_LAYOUT, LAYOUTS
 from .motion_run import build_pipeline, solve_time_point
+from .reference_lengths import read_reference_lengths
 
 BEND_LIMIT = 1.1
 """A fibre whose arc length over chord (end-to-end distance) exceeds its own at rest by more
@@ -125,8 +126,10 @@ class MotionSeries:
 class Study:
     """A scene's study: its pose (``index``, ``time``), the particles per fibre, one
     :class:`LayoutResult` per layout, the :class:`MotionSeries`, the machine and seconds; the
-    time asked for the pose (``--time``, None: the most flexed was studied) and the most flexed
-    pose's index."""
+    time asked for the pose (``--time``, None: the most flexed was studied), the most flexed
+    pose's index, and the scene's ``reference_lengths.csv`` (an OpenSim model's muscle-tendon
+    lengths, ``{muscle: (times s, lengths mm)}``, :mod:`.reference_lengths`; None or empty:
+    the scene has none)."""
 
     scene: str
     index: int
@@ -138,6 +141,7 @@ class Study:
     seconds: float
     asked_time: float | None = None
     flexed_index: int | None = None
+    reference_lengths: dict | None = None
 
 
 def fibre_statistics(block, limit: float = BEND_LIMIT):
@@ -358,4 +362,5 @@ def run_study(scene_folder, resolution: int, index: int | None = None,
         layouts.append(layout_result(scene_folder, layout, resolution, index, cache))
         say("layouts", k + 1, len(LAYOUTS))
     return Study(str(scene_folder), index, float(series.times[index]), resolution, layouts,
-                 series, machine(), wallclock.perf_counter() - start, asked_time, flexed)
+                 series, machine(), wallclock.perf_counter() - start, asked_time, flexed,
+                 read_reference_lengths(scene_folder))

@@ -13,6 +13,7 @@ import numpy as np
 from muscle_mss.filters import array_names as A
 from . import output_folder as folder
 from .pictures import MUSCLE_COLOURS
+from .reference_lengths import length_change_pct
 from .run_output import SUMMARY_COLUMNS, SUMMARY_FILE, write_csv
 from .study import (ACCEPTED_VOLUME_ERROR_PCT, BEND_LIMIT, LAYOUT_QUASI_STATIC_CAP,
                     PAPER_VOLUME_ERROR_PCT, PHASES, SLOPE_WINDOW, Study,
@@ -32,6 +33,9 @@ STUDY_FILES = (REPORT_FILE, *(f"{name}.png" for name in FIGURES),
                *(f"{name}.csv" for name in (DISPLACEMENT, SLOPES, FIBRE_LENGTH, VOLUME)),
                LAYOUT_TABLE, DISTANCES, TIME_SPLIT, SUMMARY_FILE)
 """Everything a study writes in its output folder."""
+REFERENCE_LABEL = "OpenSim muscle-tendon length (from the first time)"
+"""The legend entry of a muscle's length in the scene's OpenSim model, as its change from the
+first time point (``reference_lengths.csv``)."""
 PHASE_LABELS = {"mss": "MSS", "muscle_cd": "muscle CD", "bone_cd": "bone CD",
                 "projection": "final collision passes"}
 
@@ -123,9 +127,14 @@ def _window_text(study: Study) -> str:
 
 
 def fibre_length_figure(study: Study, out: str) -> str:
-    """Per muscle: fibre strain (mean, band least..largest) and the path's strain over time."""
+    """Per muscle: fibre strain (mean, band least..largest) and the path's strain over time;
+    where the scene has an OpenSim model's length of the muscle (``reference_lengths.csv``),
+    its change from the first time point too."""
     pyplot = _pyplot()
     series = study.motion
+    reference = study.reference_lengths or {}
+    # the figure's legend names the lines of the first panel that has them all
+    legend_from = next((m for m, name in enumerate(series.muscles) if name in reference), 0)
     rows, columns = _grid(len(series.muscles))
     figure, axes = pyplot.subplots(rows, columns, figsize=(3.6 * columns + 2.0, 2.8 * rows),
                                    dpi=110, squeeze=False)
@@ -136,13 +145,17 @@ def fibre_length_figure(study: Study, out: str) -> str:
         ax.plot(series.times, strain[:, 0], color=_colour(m), lw=1.6, label="fibres, mean")
         ax.plot(series.times, 100.0 * series.path_strain[:, m], color="black", lw=1.0, ls="--",
                 label="origin-insertion path")
+        if name in reference:
+            times, lengths = reference[name]
+            ax.plot(times, length_change_pct(lengths), color="0.45", lw=1.2, ls=":",
+                    label=REFERENCE_LABEL)
         ax.set_title(_label(name), fontsize=9)
         ax.set_xlabel("time (s)")
         ax.set_ylabel("length change from rest (%)")
         ax.grid(True, alpha=0.3)
     for ax in axes.ravel()[len(series.muscles):]:
         ax.axis("off")
-    return _save(figure, out, FIBRE_LENGTH, axes.ravel()[0])
+    return _save(figure, out, FIBRE_LENGTH, axes.ravel()[legend_from])
 
 
 def _lines_over_time(study: Study, out: str, name: str, values, ylabel: str, title: str,

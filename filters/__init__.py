@@ -1,4 +1,5 @@
-"""The six pipeline filters as plain VTK algorithms, plus the scene reader (DESIGN §5).
+"""The six pipeline filters as plain VTK algorithms, the Fibre Generator that makes a scene's
+fibres, and the scene reader (DESIGN §5, §6 "Fibre generation").
 
 ``from muscle_mss.filters import FibreResampler, SpringBuilder, RigidPoseTransform,
 MSSCollisionSolver, MVCSurfaceDeformer, VolumeErrorProbe, read_scene``
@@ -18,6 +19,7 @@ EXPORTS = {
     "MSSCollisionSolver": "collision_solver",
     "MVCSurfaceDeformer": "mvc_surface_deformer",
     "VolumeErrorProbe": "volume_error_probe",
+    "FibreGenerator": "fibre_generator",
     "read_scene": "scene_io",
     "write_scene": "scene_io",
 }
@@ -25,7 +27,10 @@ EXPORTS = {
 
 FILTER_NAMES = ("FibreResampler", "SpringBuilder", "RigidPoseTransform",
                 "MSSCollisionSolver", "MVCSurfaceDeformer", "VolumeErrorProbe")
-"""The filters in pipeline order; the ParaView plugin exposes exactly these."""
+"""The pipeline's filters in order (a solved frame depends on their properties)."""
+PLUGIN_FILTERS = FILTER_NAMES + ("FibreGenerator",)
+"""The filters the ParaView plugin exposes: the pipeline's, and the Fibre Generator, which
+makes fibres for a scene that has only muscle surfaces."""
 
 __all__ = list(EXPORTS) + ["MuscleMSSError"]
 

@@ -15,7 +15,8 @@ Polylines that chain end to end (a fibre written in pieces, e.g. as two-point se
 joined into fibres first, with a warning (:mod:`muscle_mss.core.fibre_pieces`). Fibres
 digitised in both directions are then oriented, on a copy, from the muscle's origin to
 its insertion (:mod:`muscle_mss.core.fibre_direction`): by the distances of their ends to the
-named ``origin_bone`` / ``insertion_bone`` of the optional ``Bones`` input (``bones.vtm``, rest
+named ``origin_bone`` / ``insertion_bone`` (of the optional ``Attachments`` table,
+``attachments.csv``, else of the block's field data) of the optional ``Bones`` input (``bones.vtm``, rest
 pose), else with the muscle's mean fibre direction; a warning names the block and how many fibres
 were reversed. Each fibre's midpoint (of the fibre, not of its particles) is handed on as cell
 data ``fibre_midpoint`` of the display polylines, for the Spring Builder's placement check.
@@ -28,6 +29,7 @@ import numpy as np
 
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
+from muscle_mss.core.attachment_areas import ATTACHMENTS_FILE, attachment_rows, bone_conflict
 from muscle_mss.core.errors import MuscleMSSError
 from muscle_mss.core.fibre_direction import (direction_warning, directions_by_bones,
                                              fibre_directions, reversed_fibres)
@@ -97,12 +99,25 @@ def rest_bone_meshes(bones) -> dict | None:
             for name, block in V.polydata_blocks(bones, BONES_FILE)}
 
 
-def oriented_polylines(block, points, offsets, bones, where: str):
+def attachment_bones(block, named, where: str) -> tuple:
+    """``(origin, insertion)``: the bones of a fibres block, as the attachments table names
+    them (``named``: a pair, or None) or else as its field data does (a name that is not one
+    string is refused downstream, by the Rigid Pose Transform)."""
+    given = tuple(V.field(block, array) for array in (A.ORIGIN_BONE, A.INSERTION_BONE))
+    if named is None:
+        return given
+    for end, bone, name in zip(("origin", "insertion"), given, named):
+        problem = bone_conflict(where, end, bone, name, ATTACHMENTS_FILE)
+        if problem:
+            raise MuscleMSSError(problem)
+    return tuple(named)
+
+
+def oriented_polylines(points, offsets, bones, where: str, origin, insertion):
     """``(points, warning or None)``: a muscle's fibre points with every fibre running from
-    origin to insertion (a copy when a fibre was reversed), and the sentence that says so."""
+    origin to insertion (a copy when a fibre was reversed), and the sentence that says so;
+    ``origin``, ``insertion`` the names of its bones (or None)."""
     check_fibres(points, offsets, where)
-    origin, insertion = (V.field(block, array) for array in (A.ORIGIN_BONE, A.INSERTION_BONE))
-    # a name that is not one string is refused downstream (the Rigid Pose Transform)
     origin, insertion = (b if isinstance(b, str) else None for b in (origin, insertion))
     if bones is None:
         directions = fibre_directions(points, offsets)
@@ -133,7 +148,11 @@ class FibreResampler(MuscleFilter):
                    "bones.vtm: the rest bone surfaces (optional, but connect it): fibres that "
                    "run from insertion to origin are reversed by the distances of their ends "
                    "to the block's origin_bone and insertion_bone; without it they follow the "
-                   "muscle's mean fibre direction", optional=True))
+                   "muscle's mean fibre direction", optional=True),
+              Port("Attachments", "vtkTable",
+                   "attachments.csv: columns muscle, origin_bone, insertion_bone (optional): "
+                   "each muscle's bones, instead of the fibres block's origin_bone and "
+                   "insertion_bone field data or the nearest bones", optional=True))
     OUTPUTS = (Port("Particles", "vtkMultiBlockDataSet",
                     "particles per muscle, with the fibres as polylines through them"),)
     PROPERTIES = (
@@ -162,11 +181,15 @@ class FibreResampler(MuscleFilter):
         if not blocks:
             raise MuscleMSSError(f"{FIBRES_FILE} has no blocks; it needs one block per muscle")
         bones = rest_bone_meshes(inputs[1])
+        named = {} if inputs[2] is None else attachment_rows(
+            V.table_rows(inputs[2]), [name for name, _ in blocks],
+            None if bones is None else list(bones), ATTACHMENTS_FILE)
         items = []
         for done, (name, block) in enumerate(blocks):
             where = f"{FIBRES_FILE} block '{name}'"
             points, offsets, grid, joined = fibre_polylines(block, where)
-            points, warning = oriented_polylines(block, points, offsets, bones, where)
+            ends = attachment_bones(block, named.get(name), where)
+            points, warning = oriented_polylines(points, offsets, bones, where, *ends)
             for text in (joined, warning):
                 if text:
                     vtkOutputWindow.GetInstance().DisplayWarningText(f"{self.LABEL}: {text}\n")
@@ -182,9 +205,9 @@ class FibreResampler(MuscleFilter):
             V.set_point_array(out, A.FIXED, fixed)
             V.set_cell_array(out, A.FIBRE_MIDPOINT, fibre_midpoints(points, offsets))
             V.set_field(out, A.MUSCLE_NAME, name)
-            for array in (A.ORIGIN_BONE, A.INSERTION_BONE):
-                if V.field(block, array) is not None:
-                    V.set_field(out, array, V.field(block, array))
+            for array, bone in zip((A.ORIGIN_BONE, A.INSERTION_BONE), ends):
+                if bone is not None:
+                    V.set_field(out, array, bone)
             V.set_field(out, "ParticlesPerFibre", n)
             V.set_field(out, "Randomise", int(randomise))
             V.set_field(out, "Seed", seed)

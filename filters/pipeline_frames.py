@@ -13,6 +13,7 @@ import os
 import numpy as np
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
+from muscle_mss.core.attachment_areas import ATTACHMENTS_FILE
 from muscle_mss.core.scene import BONES_FILE, FIBRES_FILE, MOTION_FILE, MUSCLES_FILE
 
 from .base import MuscleFilter, reader_files
@@ -164,6 +165,8 @@ def frames_for(option, scene_folder, filters):
 
 
 SCENE_READS = (MUSCLES_FILE, FIBRES_FILE, BONES_FILE, MOTION_FILE)
+OPTIONAL_READS = (ATTACHMENTS_FILE,)
+"""The scene files a cached pipeline's readers read: all of the first, any of the second."""
 PASSING = ("vtkPVPostFilter",)
 """What ParaView puts behind every output port: it passes the data on (adding only arrays a view
 asks for)."""
@@ -232,14 +235,15 @@ def upstream_scene(owner, upstream=KEYED_FILTERS[:-1]):
                     return (f"{producer.GetClassName()} feeds it, not a reader of one scene "
                             "file")
                 path = os.path.abspath(names[0])
-                if os.path.basename(path) not in SCENE_READS or \
+                if os.path.basename(path) not in SCENE_READS + OPTIONAL_READS or \
                         files.get(os.path.basename(path), path) != path:
-                    return f"a reader of {names[0]} feeds it, not one of {', '.join(SCENE_READS)}"
+                    return (f"a reader of {names[0]} feeds it, not one of "
+                            f"{', '.join(SCENE_READS + OPTIONAL_READS)}")
                 files[os.path.basename(path)] = path
                 data = producer.GetOutputDataObject(0)
                 stamps.append((path, data.GetMTime() if data is not None else 0))
     folders = {os.path.dirname(p) for p in files.values()}
-    if len(files) != len(SCENE_READS) or len(folders) != 1:
+    if not set(SCENE_READS) <= set(files) or len(folders) != 1:
         return "its readers do not read the four files of one scene folder"
     if set(filters) != set(upstream):
         return f"it is not fed by the {', '.join(upstream)}"

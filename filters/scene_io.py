@@ -17,6 +17,7 @@ from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutput
 from vtkmodules.vtkIOXML import (vtkXMLMultiBlockDataReader, vtkXMLMultiBlockDataWriter,
                                  vtkXMLPolyDataReader)
 
+from muscle_mss.core.attachment_areas import ATTACHMENTS_FILE, attachment_rows, bone_conflict
 from muscle_mss.core.attachments import attachment_problems
 from muscle_mss.core.errors import MuscleMSSError, first_problem
 from muscle_mss.core.fibre_pieces import joined_fibres, joined_warning
@@ -70,18 +71,36 @@ def scene_to_vtk(scene: Scene):
 
 # ---- files ---------------------------------------------------------------------------------
 
+def write_multiblock(data, path) -> None:
+    """Write the multiblock ``data`` as the ``.vtm`` file ``path`` and its block files (in the
+    folder named after it), binary appended."""
+    writer = vtkXMLMultiBlockDataWriter()
+    writer.SetFileName(str(path))
+    writer.SetInputData(data)
+    writer.SetDataModeToAppended()
+    writer.EncodeAppendedDataOff()
+    if not writer.Write():
+        raise MuscleMSSError(f"{path}: could not be written")
+
+
+def listed_block_files(path) -> list:
+    """The block files that the ``.vtm`` file ``path`` lists and that are there ([] when it is
+    absent or unreadable)."""
+    if not os.path.isfile(path):
+        return []
+    with contextlib.suppress(MuscleMSSError):
+        folder = os.path.dirname(path)
+        return [p for p in (os.path.join(folder, block) for _, block in _blocks_listed(path))
+                if os.path.isfile(p)]
+    return []
+
+
 def write_scene(scene: Scene, folder) -> None:
     """Write a scene folder that stock ParaView readers open."""
     os.makedirs(folder, exist_ok=True)
     muscles, fibres, bones, _ = scene_to_vtk(scene)
     for data, filename in ((muscles, MUSCLES_FILE), (fibres, FIBRES_FILE), (bones, BONES_FILE)):
-        writer = vtkXMLMultiBlockDataWriter()
-        writer.SetFileName(os.path.join(folder, filename))
-        writer.SetInputData(data)
-        writer.SetDataModeToAppended()
-        writer.EncodeAppendedDataOff()
-        if not writer.Write():
-            raise MuscleMSSError(f"{os.path.join(folder, filename)}: could not be written")
+        write_multiblock(data, os.path.join(folder, filename))
     times, bone_names, values = motion_rows(scene.motion)
     with open(os.path.join(folder, MOTION_FILE), "w", newline="") as f:
         out = csv.writer(f)
@@ -92,7 +111,8 @@ def write_scene(scene: Scene, folder) -> None:
 
 def scene_files(folder) -> list:
     """The files a run reads from the scene folder ``folder`` that are there: its three
-    ``.vtm`` files, each one's block files (as listed in it) and the motion table."""
+    ``.vtm`` files, each one's block files (as listed in it), the motion table and the
+    optional ``attachments.csv``."""
     files = []
     for filename in (MUSCLES_FILE, FIBRES_FILE, BONES_FILE):
         path = os.path.join(folder, filename)
@@ -100,12 +120,17 @@ def scene_files(folder) -> list:
             files.append(path)
             with contextlib.suppress(MuscleMSSError):
                 files += [os.path.join(folder, block) for _, block in _blocks_listed(path)]
-    motion = os.path.join(folder, MOTION_FILE)
-    return files + ([motion] if os.path.isfile(motion) else [])
+    return files + [path for path in (os.path.join(folder, name)
+                                      for name in (MOTION_FILE, ATTACHMENTS_FILE))
+                    if os.path.isfile(path)]
 
 
 def _require(folder, filename):
     path = os.path.join(folder, filename)
+    if not os.path.isfile(path) and filename == FIBRES_FILE and \
+            os.path.isfile(os.path.join(folder, MUSCLES_FILE)):
+        raise MuscleMSSError(f"{path}: missing; generate the fibres from the muscles and bones "
+                             f"with: muscle-mss fibres {folder}")
     if not os.path.isfile(path):
         raise MuscleMSSError(f"{path}: missing; a scene folder holds {MUSCLES_FILE}, "
                              f"{FIBRES_FILE}, {BONES_FILE} and {MOTION_FILE}")
@@ -215,15 +240,14 @@ def check_motion_cells(path):
                                      f"{what}; every row needs a value in every column")
 
 
-def motion_reader(path):
-    """An updated delimited-text reader of ``motion.csv`` set up as ParaView's CSV reader, but
-    with empty cells read as NaN (ParaView's default reads them as 0), so that the motion rules
-    name them; VTK's reader errors become our error."""
-    check_motion_cells(path)
+def csv_reader(path, numeric: bool):
+    """An updated delimited-text reader of the CSV file ``path`` with a header row, set up as
+    ParaView's CSV reader (``numeric``: numeric columns detected, empty cells read as NaN, not
+    0; else every column read as text); VTK's reader errors become our error."""
     reader = vtkDelimitedTextReader()
     reader.SetFileName(path)
     reader.SetHaveHeaders(True)
-    reader.SetDetectNumericColumns(True)
+    reader.SetDetectNumericColumns(numeric)
     reader.SetFieldDelimiterCharacters(",")
     reader.SetDefaultDoubleValue(float("nan"))
     with vtk_messages() as messages:
@@ -232,6 +256,47 @@ def motion_reader(path):
     if problem:
         raise MuscleMSSError(f"{path}: could not be read ({problem})")
     return reader
+
+
+def motion_reader(path):
+    """An updated reader of ``motion.csv`` (:func:`csv_reader`, its empty cells named first)."""
+    check_motion_cells(path)
+    return csv_reader(path, numeric=True)
+
+
+def attachments_reader(path):
+    """An updated reader of ``attachments.csv`` (every column read as text, as bone names
+    are), or None when the file is absent."""
+    return csv_reader(path, numeric=False) if os.path.isfile(path) else None
+
+
+def named_attachments(folder, muscles, bones) -> dict:
+    """``{muscle: (origin bone, insertion bone)}`` of the scene's optional ``attachments.csv``
+    (empty without one); its rows checked against the ``muscles`` and ``bones`` names."""
+    path = os.path.join(folder, ATTACHMENTS_FILE)
+    reader = attachments_reader(path)
+    if reader is None:
+        return {}
+    return attachment_rows(V.table_rows(reader.GetOutput()), list(muscles),
+                           list(bones), path)
+
+
+def with_named_bones(fibres: dict, named: dict, filename: str) -> list:
+    """Set the attachment bones ``named`` by ``attachments.csv`` on the ``fibres``
+    (``{muscle: FibreSet}``) in place; one sentence per muscle whose ``fibres.vtm`` block
+    names another bone."""
+    problems = []
+    for muscle, bones in named.items():
+        fibres_of = fibres.get(muscle)
+        if fibres_of is None:
+            continue
+        for end, bone in zip(("origin", "insertion"), bones):
+            problem = bone_conflict(f"{FIBRES_FILE} block '{muscle}'", end,
+                                    getattr(fibres_of, f"{end}_bone"), bone, filename)
+            if problem:
+                problems.append(problem)
+            setattr(fibres_of, f"{end}_bone", bone)
+    return problems
 
 
 def scene_readers(folder):
@@ -326,9 +391,11 @@ def check_scene(folder):
                       fibres_from_vtk(fibres_mb, FIBRES_FILE),
                       surfaces_from_vtk(bones_mb, BONES_FILE))
         rows = motion_rows_from_table(table)
+        named = named_attachments(folder, scene.muscles, scene.bones)
     except MuscleMSSError as err:
         return None, [str(err)]
-    problems = scene_problems(scene, rows=rows) + attachment_problems(scene)
+    problems = with_named_bones(scene.fibres, named, os.path.join(folder, ATTACHMENTS_FILE))
+    problems += scene_problems(scene, rows=rows) + attachment_problems(scene)
     if problems:
         return None, problems
     scene.motion = motion_problems(*rows, known_bones=list(scene.bones))[0]

@@ -385,6 +385,13 @@ def table_columns(table) -> dict:
     return out
 
 
+def table_rows(table) -> list:
+    """The rows of a vtkTable as dicts by column name (names stripped of spaces)."""
+    columns = {name.strip(): list(values) for name, values in table_columns(table).items()}
+    count = max((len(v) for v in columns.values()), default=0)
+    return [{name: values[r] for name, values in columns.items()} for r in range(count)]
+
+
 def fill_table(out: vtkTable, columns: dict) -> vtkTable:
     """Make ``out`` a table of ``columns`` (name → numbers or strings), in order."""
     out.Initialize()

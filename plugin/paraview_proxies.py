@@ -22,7 +22,7 @@ from xml.sax.saxutils import escape, quoteattr
 
 from paraview.util.vtkAlgorithm import smhint, smproperty, smproxy
 
-from muscle_mss.filters import EXPORTS, FILTER_NAMES
+from muscle_mss.filters import EXPORTS, PLUGIN_FILTERS
 from muscle_mss.app.warm_up import ensure_compiled, output_window_notice
 from muscle_mss.filters.frame_cache import chosen_folder
 
@@ -35,7 +35,7 @@ with contextlib.suppress(ImportError):
 
 MENU_CATEGORY = "Muscle MSS"
 
-__all__ = list(FILTER_NAMES)
+__all__ = list(PLUGIN_FILTERS)
 
 
 def _documentation(text: str) -> str:
@@ -165,6 +165,6 @@ def make_proxy(filter_class):
                           support_reload=False)(proxy)
 
 
-for _name in FILTER_NAMES:
+for _name in PLUGIN_FILTERS:
     _module = importlib.import_module(f"muscle_mss.filters.{EXPORTS[_name]}")
     globals()[_name] = make_proxy(getattr(_module, _name))

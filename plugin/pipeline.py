@@ -14,6 +14,7 @@ Command line: ``pvpython -m muscle_mss.plugin.pipeline SCENE STATE.pvsm`` saves 
 import os
 import sys
 
+from muscle_mss.core.attachment_areas import ATTACHMENTS_FILE
 from muscle_mss.filters import array_names as A
 
 PLUGIN_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paraview_plugins",
@@ -108,6 +109,11 @@ def build_pipeline(scene_folder, show=True, settings=None):
     p["motion"] = simple.CSVReader(registrationName="motion.csv", FileName=[path("motion.csv")])
     p["Fibre Resampler"] = simple.FibreResampler(registrationName="Fibre Resampler",
                                                  Fibres=p["fibres"], Bones=p["bones"])
+    if os.path.isfile(path(ATTACHMENTS_FILE)):
+        p["attachments"] = simple.CSVReader(registrationName=ATTACHMENTS_FILE,
+                                            FileName=[path(ATTACHMENTS_FILE)],
+                                            DetectNumericColumns=0)
+        p["Fibre Resampler"].Attachments = p["attachments"]
     p["Spring Builder"] = simple.SpringBuilder(registrationName="Spring Builder",
                                                Particles=p["Fibre Resampler"],
                                                Surfaces=p["muscles"], Bones=p["bones"])
