@@ -1,16 +1,16 @@
 """The ``muscle-mss`` command: validate scenes, write the demo scene, run the demo and motions.
 
-``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss fibres SCENE`` writes
-its fibres from its muscle surfaces (:mod:`muscle_mss.app.scene_fibres`); ``muscle-mss demo-scene OUT``
-writes the deterministic demo thigh scene (``--region arm``: the elbow) and its ``preview.png``;
-``muscle-mss demo [OUT]`` writes the demo scene and runs its whole motion; ``muscle-mss run SCENE
-OUT`` does the same for a user's scene (see :mod:`muscle_mss.app.run_output` for the files
-written); ``muscle-mss study SCENE OUT`` writes the paper's experiments and the fibre-length
-study as ``OUT/report.html`` (:mod:`muscle_mss.app.study`); ``muscle-mss cache info|clear``
-shows or empties the frame cache (:mod:`muscle_mss.filters.frame_cache`), which ``--cache DIR|off``
-points elsewhere or turns off.
-``muscle-mss import-opensim MODEL.osim MOTION.mot OUT --muscles DIR`` writes a scene from an
-OpenSim model and muscle surface files (:mod:`muscle_mss.app.opensim_import`).
+``muscle-mss validate SCENE`` checks every rule of DESIGN §4; ``muscle-mss fibres SCENE``
+writes its fibres from its muscle surfaces (:mod:`muscle_mss.app.scene_fibres`);
+``muscle-mss demo-scene OUT`` writes the deterministic demo thigh scene (``--region arm``: the
+elbow) and its ``preview.png``; ``muscle-mss demo [OUT]`` writes the demo scene and runs its
+whole motion; ``muscle-mss run SCENE OUT`` does the same for a user's scene (see
+:mod:`muscle_mss.app.run_output` for the files written); ``muscle-mss study SCENE OUT`` writes
+the paper's experiments and the fibre-length study as ``OUT/report.html``
+(:mod:`muscle_mss.app.study`); ``muscle-mss cache info|clear`` shows or empties the frame cache
+(:mod:`muscle_mss.filters.frame_cache`), which ``--cache DIR|off`` points elsewhere or turns
+off; ``muscle-mss import-opensim MODEL.osim MOTION.mot OUT --muscles DIR`` writes a scene from
+an OpenSim model and muscle surface files (:mod:`muscle_mss.app.opensim_import`).
 """
 from __future__ import annotations
 

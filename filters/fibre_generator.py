@@ -76,8 +76,8 @@ class FibreGenerator(MuscleFilter):
     def execute(self, inputs, outputs):
         muscles = checked_surfaces(inputs[0], MUSCLES_FILE)
         bones = checked_surfaces(inputs[1], BONES_FILE)
-        named = attachment_rows(V.table_rows(inputs[2]) if inputs[2] is not None else [], list(muscles), list(bones),
-                                ATTACHMENTS_FILE)
+        rows = V.table_rows(inputs[2]) if inputs[2] is not None else []
+        named = attachment_rows(rows, list(muscles), list(bones), ATTACHMENTS_FILE)
 
         def progress(done, total):
             if self.progress(done / total):

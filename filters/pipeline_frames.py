@@ -17,8 +17,8 @@ from muscle_mss.core.attachment_areas import ATTACHMENTS_FILE
 from muscle_mss.core.scene import BONES_FILE, FIBRES_FILE, MOTION_FILE, MUSCLES_FILE
 
 from .base import MuscleFilter, reader_files
-from .frame_cache import (KEYED_FILTERS, SURFACES, DamagedEntry, FrameStore, chosen_folder,
-                          filter_name, frame_key, scene_digest)
+from .frame_cache import (KEYED_FILTERS, SURFACES, DamagedEntry, FrameStore, filter_name,
+                          frame_key, scene_digest)
 
 
 def result_parts(result) -> tuple:
@@ -155,13 +155,6 @@ class SurfaceFrames(SolverFrames):
             values[int(k)][field] = v
         return surfaces, [{name: report[name] for name in order}      # in the computed order
                           for report, order in zip(values, scalars["order"])]
-
-
-def frames_for(option, scene_folder, filters):
-    """A :class:`SolverFrames` for the cache ``option`` chooses (:func:`chosen_folder`), or
-    None when it is off."""
-    folder = chosen_folder(option)
-    return None if folder is None else SolverFrames(FrameStore(folder), scene_folder, filters)
 
 
 SCENE_READS = (MUSCLES_FILE, FIBRES_FILE, BONES_FILE, MOTION_FILE)

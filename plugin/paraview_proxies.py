@@ -1,5 +1,5 @@
-"""ParaView proxies for the six filters, generated from their ``PROPERTIES``/``INPUTS``/``OUTPUTS``
-tables (DESIGN §2: one definition of each property).
+"""ParaView proxies for the plugin's filters (the six and the Fibre Generator), generated from
+their ``PROPERTIES``/``INPUTS``/``OUTPUTS`` tables (DESIGN §2: one definition of each property).
 
 For each filter class this module defines a subclass with one ``Set<Name>`` method per property,
 decorated with the Server Manager XML ParaView needs (type, default, range or enumeration,
