@@ -241,6 +241,22 @@ def test_muscles_are_cleaned_in_name_order_and_reference_lengths_match(osim, elb
     np.testing.assert_allclose(read, lengths, atol=1e-9)
 
 
+def test_the_imported_scene_gets_fibres_and_validates(elbow, tmp_path, capsys):
+    """The README's second command on the import: `muscle-mss fibres` infers each muscle's
+    bones from the imported ones (the forearm carries ulna and radius) and the scene passes
+    `validate`."""
+    import shutil
+    from muscle_mss.filters.scene_io import check_scene
+    scene = tmp_path / "scene"
+    shutil.copytree(elbow["out"], scene)
+    assert main(["fibres", str(scene), "--count", "9", "--points", "8"]) == 0
+    printed = capsys.readouterr().out
+    assert "biceps_long_head: scapula -> forearm (inferred)" in printed
+    assert "brachialis: humerus -> forearm (inferred)" in printed
+    loaded, problems = check_scene(str(scene))
+    assert problems == [] and sorted(loaded.fibres) == ["biceps_long_head", "brachialis"]
+
+
 def test_an_import_is_replaced_only_with_overwrite(elbow, capsys):
     args = ["import-opensim", str(elbow["model"]), str(elbow["motion"]), str(elbow["out"])]
     assert main(args) == 2
