@@ -17,9 +17,8 @@ from muscle_mss.core.scene import BONES_FILE, FIBRES_FILE, MUSCLES_FILE
 from muscle_mss.filters import array_names as A
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.fibre_generator import FibreGenerator
-from muscle_mss.filters.scene_io import (attachments_reader, fibres_from_vtk, listed_block_files,
-                                         multiblock_reader, named_attachments, vtk_messages,
-                                         write_multiblock)
+from muscle_mss.filters.scene_io import (fibres_from_vtk, listed_block_files, multiblock_reader,
+                                         named_attachments, vtk_messages, write_multiblock)
 
 
 def earlier_fibre_bones(path: str) -> dict:

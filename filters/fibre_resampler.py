@@ -17,9 +17,10 @@ digitised in both directions are then oriented, on a copy, from the muscle's ori
 its insertion (:mod:`muscle_mss.core.fibre_direction`): by the distances of their ends to the
 named ``origin_bone`` / ``insertion_bone`` (of the optional ``Attachments`` table,
 ``attachments.csv``, else of the block's field data) of the optional ``Bones`` input
-(``bones.vtm``, rest pose), else with the muscle's mean fibre direction; a warning names the block and how many fibres
-were reversed. Each fibre's midpoint (of the fibre, not of its particles) is handed on as cell
-data ``fibre_midpoint`` of the display polylines, for the Spring Builder's placement check.
+(``bones.vtm``, rest pose), else with the muscle's mean fibre direction; a warning names the
+block and how many fibres were reversed. Each fibre's midpoint (of the fibre, not of its
+particles) is handed on as cell data ``fibre_midpoint`` of the display polylines, for the Spring
+Builder's placement check.
 """
 from __future__ import annotations
 

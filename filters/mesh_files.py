@@ -11,7 +11,7 @@ from vtkmodules.vtkFiltersCore import vtkQuadricDecimation, vtkTriangleFilter
 from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkSTLReader
 from vtkmodules.vtkIOLegacy import vtkPolyDataReader
 from vtkmodules.vtkIOPLY import vtkPLYReader
-from vtkmodules.vtkIOXML import vtkXMLMultiBlockDataWriter, vtkXMLPolyDataReader
+from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
 
 from muscle_mss.core import mesh_cleaning as C
 from muscle_mss.core.errors import MuscleMSSError
@@ -137,12 +137,5 @@ def block_files(filename: str, count: int) -> list:
 def write_surfaces(surfaces: dict, path: str) -> None:
     """Write ``{name: Surface}`` as a ``.vtm`` multiblock of triangle surfaces (block name =
     name, in order) with its block files beside it, as ``scene_io.write_scene`` writes them."""
-    data = V.make_multiblock([(name, V.make_polydata(s.points, triangles=s.triangles))
-                              for name, s in surfaces.items()])
-    writer = vtkXMLMultiBlockDataWriter()
-    writer.SetFileName(path)
-    writer.SetInputData(data)
-    writer.SetDataModeToAppended()
-    writer.EncodeAppendedDataOff()
-    if not writer.Write():
-        raise MuscleMSSError(f"{path}: could not be written")
+    from .scene_io import surfaces_to_vtk, write_multiblock
+    write_multiblock(surfaces_to_vtk(surfaces), path)
