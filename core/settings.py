@@ -155,8 +155,8 @@ class QuasiStaticSettings:
     sum; None: the spring energy's, :data:`DEFAULT_CONTACT_WEIGHTS`), the number of L-BFGS
     pairs kept, the spring energy (one of :data:`SPRING_ENERGIES`) and whether the contacts
     between muscles enter the preconditioner
-    (:mod:`~muscle_mss.core.quasi_static.contact_preconditioner`: a third to a half fewer
-    iterations, but no fewer seconds yet on two cores, so off by default;
+    (:mod:`~muscle_mss.core.quasi_static.contact_preconditioner`: up to half the iterations,
+    but no fewer seconds over the demo motions on two cores, so off by default;
     docs/solver-notes.md, "Contacts in the preconditioner")."""
 
     tolerance: float = DEFAULT_TOLERANCE

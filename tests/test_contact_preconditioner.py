@@ -6,7 +6,8 @@ import numpy as np
 from muscle_mss.core import model as S
 from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.quasi_static.contact_preconditioner import (
-    ContactInverseHessian, InverseColumns, inverse_columns_of, muscle_contact_columns)
+    ContactInverseHessian, InverseColumns, inverse_columns_of, muscle_contact_columns,
+    particle_columns)
 from muscle_mss.core.quasi_static.preconditioner import InitialInverseHessian, preconditioner
 from muscle_mss.core.contacts.collision_spheres import Spheres
 
@@ -48,7 +49,8 @@ def test_inverse_columns_are_the_dense_inverse_whatever_was_asked_before():
 def test_woodbury_update_inverts_the_matrix_with_the_contacts():
     """(A0 + U U^T)^-1 applied by the capacitance per muscle equals a dense solve of that
     matrix: A0 from the initial inverse Hessian (springs, tissue, volume) column by column,
-    U from the contacts (two on one particle, several per muscle)."""
+    U from the contacts (two on one particle, several per muscle), each particle's block kept
+    whole (share 0)."""
     model = two_muscles()
     prep = S.prepare(model)
     pre = preconditioner(model, prep, 0.1)
@@ -58,7 +60,7 @@ def test_woodbury_update_inverts_the_matrix_with_the_contacts():
     h0 = InitialInverseHessian(pre, muscle, np.array([2.0, 0.5]), rng.normal(size=(f, 3)))
     at = np.array([0, 0, 3, f - 1, f - 4, f // 2, 7])
     column = rng.normal(size=(len(at), 3)) * 3.0
-    contact = ContactInverseHessian(h0, at, column, muscle, inverse_columns_of(pre))
+    contact = ContactInverseHessian(h0, at, column, muscle, inverse_columns_of(pre), 0.0)
     matrix = np.linalg.inv(dense_of(lambda r: h0(r.copy()), f))
     for p, u in zip(at, column):
         full = np.zeros((f, 3))
@@ -69,6 +71,27 @@ def test_woodbury_update_inverts_the_matrix_with_the_contacts():
     np.testing.assert_allclose(contact(rhs), expected, rtol=1e-8, atol=1e-12)
     empty = ContactInverseHessian(h0, at[:0], column[:0], muscle, inverse_columns_of(pre))
     np.testing.assert_allclose(empty(rhs), h0(rhs.copy()), rtol=1e-12)
+
+
+def test_particle_columns_keep_each_particles_stiffest_directions():
+    """Merged columns rebuild each particle's summed stiffness sum u u^T exactly with share
+    0, and its largest eigenvalue's part alone with share 1 (numpy's eigh as the reference)."""
+    rng = np.random.default_rng(11)
+    at = rng.integers(0, 6, size=20)
+    column = rng.normal(size=(20, 3))
+    column[at == 2] = [1.0, 2.0, 0.5]           # one particle pushed twice along one normal
+    for share in (0.0, 1.0):
+        merged_at, merged = particle_columns(at, column, share)
+        assert np.all(np.diff(merged_at) >= 0)
+        for p in np.unique(at):
+            block = column[at == p].T @ column[at == p]
+            values, vectors = np.linalg.eigh(block)
+            if share:
+                block = values[-1] * np.outer(vectors[:, -1], vectors[:, -1])
+            mine = merged[merged_at == p]
+            np.testing.assert_allclose(mine.T @ mine, block, atol=1e-12 * values[-1])
+            if share or p == 2:
+                assert len(mine) == 1
 
 
 def test_muscle_contact_columns_are_the_overlapping_pairs_of_other_muscles():

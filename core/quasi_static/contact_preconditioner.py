@@ -12,13 +12,16 @@ muscle), and the sum is inverted by the Woodbury identity against the banded fac
     (A0 + U U^T)^-1 = A0^-1 - A0^-1 U (I + U^T A0^-1 U)^-1 U^T A0^-1
 
 ``A0`` the :class:`~.preconditioner.InitialInverseHessian`'s matrix (springs, tissue, volume),
-``U`` one column ``sqrt(w) n`` per pair and side. The capacitance ``I + U^T A0^-1 U`` is one
-small dense matrix per muscle, built and factorised at every iteration from the pairs of that
-iteration; its entries need ``A^-1`` between contact particles, the columns of ``A^-1`` at
+``U`` the pairs' columns ``sqrt(w) n`` merged particle by particle: a particle's summed
+stiffness along its stiffest direction (:data:`RANK_SHARE`; its pairs push it along nearly
+one normal, and the capacitance's cost grows with the cube of its columns). The capacitance
+``I + U^T A0^-1 U`` is one small dense matrix per muscle, built and factorised at every
+iteration from the pairs of that iteration; its entries need ``A^-1`` between contact particles, the columns of ``A^-1`` at
 those particles, computed once per topology as contacts first reach a particle
 (:class:`InverseColumns`; a column is a pure function of its particle, so a frame's answer does
-not depend on which columns earlier frames left). Applying the result costs a second banded
-solve and the small triangular solves. The contacts with the bones stay out: in the
+not depend on which columns earlier frames left). Applying the result costs the small
+triangular solves and a sum of the kept columns (``A0^-1 U t``: ``U t`` is zero but at the
+contacts' particles), not a second banded solve. The contacts with the bones stay out: in the
 preconditioner they sent the arm's brachialis at 130 degrees around a bone into an equilibrium
 of 14 % more energy (docs/solver-notes.md, "Contacts in the preconditioner").
 """
@@ -30,6 +33,11 @@ from numba import njit, prange
 # Memory for the columns of A^-1 kept between solves (bytes); past it the columns are dropped
 # and computed again as contacts need them.
 COLUMN_BYTES = 512 * 2**20
+# A particle's contacts enter as the principal directions of their summed stiffness whose
+# stiffness is at least this share of the particle's largest (1: its stiffest direction alone).
+RANK_SHARE = 1.0
+RANK_ROUNDING = 1e-12          # a smaller share of the largest is a zero eigenvalue's rounding
+JACOBI_SWEEPS = 16              # the 3 x 3 eigenproblems' rotation sweeps, at most
 
 
 @njit(cache=True, parallel=True)
@@ -88,6 +96,7 @@ class InverseColumns:
         self.slot = np.full(f, -1, dtype=np.int64)
         self.columns = np.zeros((0, self.width))
         self.count = 0
+        self.scratch = np.empty((3, f))     # :func:`_subtract_solved`'s
 
     def slots(self, particles: np.ndarray) -> np.ndarray:
         """(k,) the rows of :attr:`columns` holding the columns at the free ``particles``
@@ -158,30 +167,101 @@ def muscle_contact_columns(x, weight, spheres, lists):
     return at, column
 
 
+@njit(cache=True)
+def _symmetric_eigen(a, values, vectors):
+    """The eigenvalues ``values`` (3,) and eigenvectors (the columns of ``vectors`` (3, 3)) of
+    the symmetric ``a`` (3, 3, overwritten) by cyclic Jacobi rotations."""
+    for i in range(3):
+        for j in range(3):
+            vectors[i, j] = 1.0 if i == j else 0.0
+    for _ in range(JACOBI_SWEEPS):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        scale = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= 1e-30 * scale or off == 0.0:
+            break
+        for p in range(2):
+            for q in range(p + 1, 3):
+                if a[p, q] == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):          # a <- a J
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(3):          # a <- J^T a
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                for k in range(3):
+                    vkp, vkq = vectors[k, p], vectors[k, q]
+                    vectors[k, p], vectors[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+    for i in range(3):
+        values[i] = a[i, i]
+
+
 @njit(cache=True, parallel=True)
-def _capacitance(ptr, at, column, slot, columns, place, volume_solved, beta, cap_ptr, cap):
+def _merged_columns(at, column, group_ptr, share, out_at, out_column, kept):
+    """Particle ``g``'s contacts ``group_ptr[g]:group_ptr[g + 1]`` of ``at``/``column`` (sorted
+    by particle) as the eigenvectors of their stiffness ``sum u u^T`` scaled by the square
+    roots of the eigenvalues, those of at least ``share`` times the largest, in slots ``3 g ..
+    3 g + 2`` of ``out_at``/``out_column``, ``kept`` (3 g,) True where a slot is used."""
+    for g in prange(group_ptr.shape[0] - 1):
+        a = np.zeros((3, 3))
+        values = np.empty(3)
+        vectors = np.empty((3, 3))
+        for c in range(group_ptr[g], group_ptr[g + 1]):
+            for i in range(3):
+                for j in range(3):
+                    a[i, j] += column[c, i] * column[c, j]
+        _symmetric_eigen(a, values, vectors)
+        largest = max(values[0], max(values[1], values[2]))
+        for i in range(3):
+            slot = 3 * g + i
+            out_at[slot] = at[group_ptr[g]]
+            kept[slot] = values[i] > 0.0 and values[i] >= max(share, RANK_ROUNDING) * largest
+            root = np.sqrt(max(values[i], 0.0))
+            for j in range(3):
+                out_column[slot, j] = root * vectors[j, i]
+
+
+def particle_columns(at, column, share):
+    """The contacts' columns ``at`` (k,) / ``column`` (k, 3) merged particle by particle: each
+    particle's stiffness ``sum_j u_j u_j^T`` (a 3 x 3 block of rank up to 3) along its
+    principal directions, kept where their stiffness is at least ``share`` times the
+    particle's largest (:data:`RANK_SHARE`; 0 keeps the block exactly). ``(at (k',), column
+    (k', 3))``, sorted by particle."""
+    order = np.argsort(at, kind="stable")
+    at, column = at[order], np.ascontiguousarray(column[order])
+    group_ptr = np.flatnonzero(np.r_[True, at[1:] != at[:-1], True]).astype(np.int64)
+    groups = len(group_ptr) - 1
+    out_at = np.empty(3 * groups, dtype=np.int64)
+    out_column = np.empty((3 * groups, 3))
+    kept = np.empty(3 * groups, dtype=np.bool_)
+    if groups:
+        _merged_columns(at, column, group_ptr, float(share), out_at, out_column, kept)
+    return out_at[kept], out_column[kept]
+
+
+@njit(cache=True, parallel=True)
+def _capacitance(ptr, at, column, slot, columns, place, along_volume, beta, cap_ptr, cap):
     """Each muscle's capacitance ``I + U^T A0^-1 U`` (dense, row major from ``cap_ptr[m]``),
     for the contacts ``ptr[m]:ptr[m + 1]`` (particles ``at``, columns ``column``; ``slot`` of
     each particle's row of ``columns``, the columns of ``A^-1`` in factor order, ``place`` of
-    each free particle in it) and the volume's ``A0^-1 = A^-1 - beta_m a a^T``, ``a`` =
-    ``volume_solved`` (f, 3)."""
+    each free particle in it) and the volume's ``A0^-1 = A^-1 - beta_m a a^T``:
+    ``along_volume`` (k,) each column's ``u . a`` at its particle."""
     for m in prange(ptr.shape[0] - 1):
         first, k = ptr[m], ptr[m + 1] - ptr[m]
         s = cap[cap_ptr[m]:cap_ptr[m] + k * k]
         for a in range(k):
             ca = first + a
-            pa = at[ca]
-            va = (column[ca, 0] * volume_solved[pa, 0] + column[ca, 1] * volume_solved[pa, 1]
-                  + column[ca, 2] * volume_solved[pa, 2])
+            va = along_volume[ca]
             for b in range(a + 1):
                 cb = first + b
-                pb = at[cb]
-                vb = (column[cb, 0] * volume_solved[pb, 0]
-                      + column[cb, 1] * volume_solved[pb, 1]
-                      + column[cb, 2] * volume_solved[pb, 2])
                 dot = (column[ca, 0] * column[cb, 0] + column[ca, 1] * column[cb, 1]
                        + column[ca, 2] * column[cb, 2])
-                value = columns[slot[ca], place[pb]] * dot - beta[m] * va * vb
+                value = (columns[slot[ca], place[at[cb]]] * dot
+                         - beta[m] * va * along_volume[cb])
                 if a == b:
                     value += 1.0
                 s[a * k + b] = value
@@ -211,40 +291,79 @@ def _factorise(ptr, cap_ptr, cap):
 
 
 @njit(cache=True, parallel=True, fastmath={"reassoc"})
-def _correction(ptr, at, column, cap_ptr, cap, y, z, work):
-    """``z`` (f, 3) = ``U (I + U^T A0^-1 U)^-1 U^T y`` per muscle (``z`` zero on entry)."""
+def _capacitance_solve(ptr, at, column, cap_ptr, cap, y, t):
+    """``t`` (k,) = ``(I + U^T A0^-1 U)^-1 U^T y`` per muscle, ``y`` (f, 3)."""
     for m in prange(ptr.shape[0] - 1):
         first, k = ptr[m], ptr[m + 1] - ptr[m]
         s = cap[cap_ptr[m]:cap_ptr[m] + k * k]
-        t = work[first:first + k]
+        u = t[first:first + k]
         for a in range(k):
             c = first + a
             p = at[c]
-            t[a] = column[c, 0] * y[p, 0] + column[c, 1] * y[p, 1] + column[c, 2] * y[p, 2]
-        for a in range(k):                  # L u = t
-            total = t[a]
+            u[a] = column[c, 0] * y[p, 0] + column[c, 1] * y[p, 1] + column[c, 2] * y[p, 2]
+        for a in range(k):                  # L v = u
+            total = u[a]
             for b in range(a):
-                total -= s[a * k + b] * t[b]
-            t[a] = total / s[a * k + a]
-        for a in range(k - 1, -1, -1):      # L^T v = u, row by row of L
-            t[a] /= s[a * k + a]
+                total -= s[a * k + b] * u[b]
+            u[a] = total / s[a * k + a]
+        for a in range(k - 1, -1, -1):      # L^T t = v, row by row of L
+            u[a] /= s[a * k + a]
             for b in range(a):
-                t[b] -= s[a * k + b] * t[a]
-        for a in range(k):
-            c = first + a
+                u[b] -= s[a * k + b] * u[a]
+
+
+@njit(cache=True, parallel=True, fastmath={"reassoc"})
+def _subtract_solved(ptr, at, column, t, slot, columns, block_of, rows, rows_ptr,
+                     volume_solved, beta, along_volume, out, work):
+    """``out`` (f, 3) ``-= A0^-1 U t`` muscle by muscle, from the kept columns of ``A^-1`` (``U
+    t`` is zero but at the contacts' particles, so no banded solve is needed; a particle's
+    columns are adjacent) and the volume's ``- beta_m a (a^T U t)``. ``work`` (3, f)
+    scratch."""
+    for m in prange(ptr.shape[0] - 1):
+        first, last = ptr[m], ptr[m + 1]
+        if first == last:
+            continue
+        b = block_of[at[first]]
+        start, size = rows_ptr[b], rows_ptr[b + 1] - rows_ptr[b]
+        wx, wy, wz = (work[0, start:start + size], work[1, start:start + size],
+                      work[2, start:start + size])
+        for j in range(size):
+            wx[j], wy[j], wz[j] = 0.0, 0.0, 0.0
+        along = 0.0
+        c = first
+        while c < last:
+            ux, uy, uz = 0.0, 0.0, 0.0
             p = at[c]
-            for axis in range(3):
-                z[p, axis] += column[c, axis] * t[a]
+            row = columns[slot[c]]
+            while c < last and at[c] == p:
+                ux += column[c, 0] * t[c]
+                uy += column[c, 1] * t[c]
+                uz += column[c, 2] * t[c]
+                along += along_volume[c] * t[c]
+                c += 1
+            for j in range(size):
+                wx[j] += row[j] * ux
+                wy[j] += row[j] * uy
+                wz[j] += row[j] * uz
+        scale = beta[m] * along
+        for j in range(size):
+            p = rows[start + j]
+            out[p, 0] -= wx[j] - scale * volume_solved[p, 0]
+            out[p, 1] -= wy[j] - scale * volume_solved[p, 1]
+            out[p, 2] -= wz[j] - scale * volume_solved[p, 2]
 
 
 class ContactInverseHessian:
     """``(A0 + U U^T)^-1`` (module docstring): ``h0`` applies ``A0^-1`` (an
     :class:`~.preconditioner.InitialInverseHessian`, its volume gradient solved), ``at`` (k,)
-    the contacts' free particles, ``column`` (k, 3) their ``sqrt(w) n``, ``muscle_of`` (f,)
-    each free particle's muscle, ``inverse`` the :class:`InverseColumns`."""
+    the contacts' free particles, ``column`` (k, 3) their ``sqrt(w) n`` (merged particle by
+    particle, :func:`particle_columns` with ``share``), ``muscle_of`` (f,) each free
+    particle's muscle, ``inverse`` the :class:`InverseColumns`."""
 
-    def __init__(self, h0, at, column, muscle_of, inverse: InverseColumns):
-        self.h0 = h0
+    def __init__(self, h0, at, column, muscle_of, inverse: InverseColumns,
+                 share: float = RANK_SHARE):
+        self.h0, self.inverse = h0, inverse
+        at, column = particle_columns(at, column, share)
         order = np.argsort(muscle_of[at], kind="stable")
         self.at, self.column = at[order], np.ascontiguousarray(column[order])
         n_muscles = len(h0.c)
@@ -252,19 +371,23 @@ class ContactInverseHessian:
         sizes = np.diff(self.ptr)
         self.cap_ptr = np.concatenate([[0], np.cumsum(sizes * sizes)]).astype(np.int64)
         self.cap = np.empty(self.cap_ptr[-1])
-        self.work = np.empty(len(self.at))
+        self.t = np.empty(len(self.at))
         if not len(self.at):
             return
-        slot = inverse.slots(self.at)
-        volume_solved, beta = h0.volume_terms()
-        _capacitance(self.ptr, self.at, self.column, slot, inverse.columns, inverse.place_of,
-                     volume_solved, beta, self.cap_ptr, self.cap)
+        self.slot = inverse.slots(self.at)
+        self.volume_solved, self.beta = h0.volume_terms()
+        self.along_volume = np.einsum("ij,ij->i", self.column, self.volume_solved[self.at])
+        _capacitance(self.ptr, self.at, self.column, self.slot, inverse.columns,
+                     inverse.place_of, self.along_volume, self.beta, self.cap_ptr, self.cap)
         _factorise(self.ptr, self.cap_ptr, self.cap)
 
     def __call__(self, rhs):
         y = self.h0(rhs)
         if not len(self.at):
             return y
-        z = np.zeros_like(y)
-        _correction(self.ptr, self.at, self.column, self.cap_ptr, self.cap, y, z, self.work)
-        return y - self.h0(z)
+        inverse, pre = self.inverse, self.h0.pre
+        _capacitance_solve(self.ptr, self.at, self.column, self.cap_ptr, self.cap, y, self.t)
+        _subtract_solved(self.ptr, self.at, self.column, self.t, self.slot, inverse.columns,
+                         inverse.block_of, pre.rows, pre.rows_ptr, self.volume_solved,
+                         self.beta, self.along_volume, y, inverse.scratch)
+        return y
