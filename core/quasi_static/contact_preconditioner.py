@@ -13,15 +13,15 @@ muscle), and the sum is inverted by the Woodbury identity against the banded fac
 
 ``A0`` the :class:`~.preconditioner.InitialInverseHessian`'s matrix (springs, tissue, volume),
 ``U`` the pairs' columns ``sqrt(w) n`` merged particle by particle: a particle's summed
-stiffness along its stiffest direction (:data:`RANK_SHARE`; its pairs push it along nearly
-one normal, and the capacitance's cost grows with the cube of its columns). The capacitance
-``I + U^T A0^-1 U`` is one small dense matrix per muscle, built and factorised at every
-iteration from the pairs of that iteration; its entries need ``A^-1`` between contact particles, the columns of ``A^-1`` at
-those particles, computed once per topology as contacts first reach a particle
+stiffness along its stiffest direction (:data:`RANK_SHARE`; its pairs push it along nearly one
+normal, and the capacitance's cost grows with the cube of its columns). The capacitance ``I +
+U^T A0^-1 U`` is one small dense matrix per muscle, built and factorised at every iteration from
+the pairs of that iteration; its entries need ``A^-1`` between contact particles, the columns of
+``A^-1`` at those particles, computed once per topology as contacts first reach a particle
 (:class:`InverseColumns`; a column is a pure function of its particle, so a frame's answer does
-not depend on which columns earlier frames left). Applying the result costs the small
-triangular solves and a sum of the kept columns (``A0^-1 U t``: ``U t`` is zero but at the
-contacts' particles), not a second banded solve. The contacts with the bones stay out: in the
+not depend on which columns earlier frames left). Applying the result costs the small triangular
+solves and a sum of the kept columns (``A0^-1 U t``: ``U t`` is zero but at the contacts'
+particles), not a second banded solve. The contacts with the bones stay out: in the
 preconditioner they sent the arm's brachialis at 130 degrees around a bone into an equilibrium
 of 14 % more energy (docs/solver-notes.md, "Contacts in the preconditioner").
 """
@@ -201,28 +201,34 @@ def _symmetric_eigen(a, values, vectors):
 
 
 @njit(cache=True, parallel=True)
-def _merged_columns(at, column, group_ptr, share, out_at, out_column, kept):
+def _merged_columns(at, column, group_ptr, share, out_at, out_column, kept, stiffness, values):
     """Particle ``g``'s contacts ``group_ptr[g]:group_ptr[g + 1]`` of ``at``/``column`` (sorted
     by particle) as the eigenvectors of their stiffness ``sum u u^T`` scaled by the square
     roots of the eigenvalues, those of at least ``share`` times the largest, in slots ``3 g ..
-    3 g + 2`` of ``out_at``/``out_column``, ``kept`` (3 g,) True where a slot is used."""
+    3 g + 2`` of ``out_at``/``out_column``, ``kept`` (3 g,) True where a slot is used;
+    ``stiffness`` (G, 3, 3) and ``values`` (G, 3) scratch."""
     for g in prange(group_ptr.shape[0] - 1):
-        a = np.zeros((3, 3))
-        values = np.empty(3)
-        vectors = np.empty((3, 3))
+        a, value = stiffness[g], values[g]
+        vectors = out_column[3 * g:3 * g + 3]           # the eigenvectors as its columns
+        for i in range(3):
+            for j in range(3):
+                a[i, j] = 0.0
         for c in range(group_ptr[g], group_ptr[g + 1]):
             for i in range(3):
                 for j in range(3):
                     a[i, j] += column[c, i] * column[c, j]
-        _symmetric_eigen(a, values, vectors)
-        largest = max(values[0], max(values[1], values[2]))
+        _symmetric_eigen(a, value, vectors)
+        largest = max(value[0], max(value[1], value[2]))
         for i in range(3):
-            slot = 3 * g + i
-            out_at[slot] = at[group_ptr[g]]
-            kept[slot] = values[i] > 0.0 and values[i] >= max(share, RANK_ROUNDING) * largest
-            root = np.sqrt(max(values[i], 0.0))
+            kept[3 * g + i] = value[i] > 0.0 and value[i] >= max(share, RANK_ROUNDING) * largest
+            out_at[3 * g + i] = at[group_ptr[g]]
+        for i in range(3):                  # eigenvector i into row i (slot 3 g + i), scaled
+            for j in range(i + 1, 3):
+                vectors[i, j], vectors[j, i] = vectors[j, i], vectors[i, j]
+        for i in range(3):
+            root = np.sqrt(max(value[i], 0.0))
             for j in range(3):
-                out_column[slot, j] = root * vectors[j, i]
+                vectors[i, j] *= root
 
 
 def particle_columns(at, column, share):
@@ -239,7 +245,8 @@ def particle_columns(at, column, share):
     out_column = np.empty((3 * groups, 3))
     kept = np.empty(3 * groups, dtype=np.bool_)
     if groups:
-        _merged_columns(at, column, group_ptr, float(share), out_at, out_column, kept)
+        _merged_columns(at, column, group_ptr, float(share), out_at, out_column, kept,
+                        np.empty((groups, 3, 3)), np.empty((groups, 3)))
     return out_at[kept], out_column[kept]
 
 
