@@ -92,6 +92,8 @@ def test_particle_columns_keep_each_particles_stiffest_directions():
             np.testing.assert_allclose(mine.T @ mine, block, atol=1e-12 * values[-1])
             if share or p == 2:
                 assert len(mine) == 1
+        none_at, none = particle_columns(at[:0], column[:0], share)      # no contact
+        assert none_at.shape == (0,) and none.shape == (0, 3)
 
 
 def test_muscle_contact_columns_are_the_overlapping_pairs_of_other_muscles():

@@ -237,6 +237,8 @@ def particle_columns(at, column, share):
     principal directions, kept where their stiffness is at least ``share`` times the
     particle's largest (:data:`RANK_SHARE`; 0 keeps the block exactly). ``(at (k',), column
     (k', 3))``, sorted by particle."""
+    if not len(at):
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
     order = np.argsort(at, kind="stable")
     at, column = at[order], np.ascontiguousarray(column[order])
     group_ptr = np.flatnonzero(np.r_[True, at[1:] != at[:-1], True]).astype(np.int64)
