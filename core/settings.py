@@ -115,6 +115,12 @@ DEFAULT_CONTACT_WEIGHTS = {SPRINGS_HOOKE: 0.3, SPRINGS_COROTATIONAL: 1.0}
 # (core/quasi_static/corotational.py), which keep their stiffness across themselves when
 # compressed and so converge the flexed poses in a fraction of the iterations.
 DEFAULT_SPRINGS = SPRINGS_COROTATIONAL
+# The contacts' stiffness in the quasi-static solve's first stage, a fraction of the full
+# (1: one stage). Muscles pressed on each other slide into place far sooner against softer
+# contacts (the demo thigh's most flexed pose: 471 iterations in one stage, 289 in two); the
+# second stage, at the full stiffness, starts from there (docs/solver-notes.md, "Soft contacts
+# first").
+DEFAULT_SOFT_START = 0.3
 
 
 @dataclass(slots=True)
@@ -153,8 +159,10 @@ class QuasiStaticSettings:
     """What only the quasi-static method reads: its tolerance (mm, the largest particle move of
     a quasi-Newton step), the contact stiffness (a multiple of the stiffest particle's spring
     sum; None: the spring energy's, :data:`DEFAULT_CONTACT_WEIGHTS`), the number of L-BFGS
-    pairs kept, the spring energy (one of :data:`SPRING_ENERGIES`) and whether the contacts
-    between muscles enter the preconditioner
+    pairs kept, the spring energy (one of :data:`SPRING_ENERGIES`), the contacts' stiffness
+    in a first stage as a fraction of the full (``soft_start``, in (0, 1]; 1: no such stage;
+    :data:`DEFAULT_SOFT_START`) and whether the contacts between muscles enter the
+    preconditioner
     (:mod:`~muscle_mss.core.quasi_static.contact_preconditioner`: up to half the iterations,
     but no fewer seconds over the demo motions on two cores, so off by default;
     docs/solver-notes.md, "Contacts in the preconditioner")."""
@@ -163,6 +171,7 @@ class QuasiStaticSettings:
     contact_weight: float | None = None
     history: int = DEFAULT_HISTORY
     springs: str = DEFAULT_SPRINGS
+    soft_start: float = DEFAULT_SOFT_START
     contact_preconditioner: bool = False
 
     @property

@@ -257,8 +257,9 @@ def field_value(settings: SolverSettings, field: str):
 
 def check_settings(settings: SolverSettings) -> None:
     """Raise :class:`MuscleMSSError` naming the first setting outside its row's choices or
-    range (a whole number for a count, finite), or an L-BFGS ``history``, ``contact_weight``
-    or ``contact_preconditioner`` (settings with no property) out of theirs."""
+    range (a whole number for a count, finite), or an L-BFGS ``history``, ``contact_weight``,
+    ``soft_start`` or ``contact_preconditioner`` (settings with no property) out of
+    theirs."""
     for prop in ROW_OF_FIELD.values():
         value = field_value(settings, prop.field)
         problem = None
@@ -282,6 +283,11 @@ def check_settings(settings: SolverSettings) -> None:
         raise MuscleMSSError("quasi-static contact_preconditioner is "
                              f"{settings.quasi_static.contact_preconditioner!r}; it must be "
                              "True or False")
+    soft = settings.quasi_static.soft_start
+    if isinstance(soft, bool) or not isinstance(soft, (int, float)) or not 0.0 < soft <= 1.0:
+        raise MuscleMSSError(f"quasi-static soft_start is {soft!r}; it must be a number above "
+                             "0 and at most 1 (the first stage's contact stiffness as a "
+                             "fraction of the full; 1 for one stage)")
     weight = settings.quasi_static.weight
     if not (weight > 0.0 and math.isfinite(weight)):
         raise MuscleMSSError(f"quasi-static contact weight is {weight}; it must be finite and "

@@ -54,7 +54,7 @@ def test_every_solver_setting_but_the_internal_ones_has_a_row():
             else:
                 yield prefix + f.name
     internal = {"quasi_static.contact_weight", "quasi_static.history",
-                "quasi_static.contact_preconditioner"}
+                "quasi_static.soft_start", "quasi_static.contact_preconditioner"}
     assert set(paths(SolverSettings())) - internal == {p.field for p in FIELD_ROWS}
 
 

@@ -45,6 +45,10 @@ TERMINATION_STALLED = "energy rounding"
 # solves the spring matrix for it: three more columns). An initial inverse Hessian held for a
 # few iterations is still positive definite; the volume term's stiff mode changes slowly.
 VOLUME_REFRESH = 10
+# The tolerance (mm) of the stage at softened contacts (settings' ``soft_start``): where the
+# muscles have slid into place, before the contacts stiffen; tighter only makes that stage
+# longer (docs/solver-notes.md, "Soft contacts first").
+SOFT_STAGE_TOLERANCE = 0.5
 
 
 @dataclass
@@ -150,13 +154,62 @@ def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings 
 
 
 def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
-    """The L-BFGS iterations from the positions ``energy_of`` holds, until the tolerance, the
-    cap, the budget or a failed line search (:class:`LoopOutcome`). Raises
+    """The L-BFGS iterations from the positions ``energy_of`` holds, in stages
+    (:func:`_stages`: the contacts softened first, then at their full stiffness), until the
+    last stage's tolerance, the cap, the budget or a failed line search (:class:`LoopOutcome`,
+    the stages' iterations in one record). Raises
     :class:`~muscle_mss.core.errors.PoseError` naming the muscle (of ``names``) when the energy
-    at the start is not finite or a particle gets farther from its start than ``size`` mm
-    (:func:`~muscle_mss.core.divergence.scene_size`, :func:`_check_reach`): the energy has no
-    minimum near the pose."""
+    at the start is not finite or a particle gets farther from a stage's start than ``size``
+    mm (:func:`~muscle_mss.core.divergence.scene_size`, :func:`_check_reach`): the energy has
+    no minimum near the pose."""
+    loop = LoopOutcome(_record(int(settings.iterations), len(prep.offsets) - 1), 0, None,
+                       False, 0.0, np.ascontiguousarray(energy_of.x[:, pre.free].T))
+    stages = _stages(settings, energy_of)
+    started = time.perf_counter()
+    for number, (fraction, tolerance) in enumerate(stages):
+        energy_of.soften(fraction)
+        first = loop.iterations
+        stage = _iterate(prep, pre, settings, energy_of, spheres, progress, names, size,
+                         loop, tolerance, started)
+        loop = stage._replace(solve_seconds=loop.solve_seconds + stage.solve_seconds)
+        if number == len(stages) - 1:
+            break
+        if stage.stopped_by == TERMINATION_BUDGET or stage.iterations >= int(settings.iterations):
+            return loop._replace(converged=False)   # out of iterations before the last stage
+        if stage.converged and _met_untouched(loop.record, first, stage.iterations,
+                                              settings.quasi_static.tolerance):
+            break
+    return loop
+
+
+def _met_untouched(record, first, done, tolerance) -> bool:
+    """Whether the stage of ``record``'s rows ``first:done`` ended where no contact touches
+    (the softened energy equals the full one around it) with a step and a distance to go
+    within ``tolerance``: the full problem's convergence (a model at rest ends in one
+    iteration)."""
+    last = done - 1
+    return bool(record.muscle_pairs[last] == 0 and record.bone_pairs[last] == 0
+                and record.residual[last] <= tolerance
+                and settled(record.residual[first:done], tolerance))
+
+
+def _stages(settings, energy_of) -> list:
+    """``[(contact stiffness fraction, tolerance mm), ...]`` of the minimisation's stages: with
+    contacts and ``soft_start`` below 1, first at that fraction to
+    :data:`SOFT_STAGE_TOLERANCE` (or the tolerance, if looser), then at the full stiffness."""
     tolerance = settings.quasi_static.tolerance
+    soft = settings.quasi_static.soft_start
+    if soft < 1.0 and energy_of.has_contacts():
+        return [(soft, max(SOFT_STAGE_TOLERANCE, tolerance)), (1.0, tolerance)]
+    return [(1.0, tolerance)]
+
+
+def _iterate(prep, pre, settings, energy_of, spheres, progress, names, size, loop, tolerance,
+             started):
+    """One stage of :func:`_minimise`: the iterations from ``loop.position`` (its
+    ``iterations`` done before, their rows of ``loop.record`` filled) until ``tolerance`` mm
+    or the others' ends; the history starts empty. ``started``: the minimisation's start
+    (``time.perf_counter()``), from which the record counts seconds."""
     budget = settings.budget
     free_muscle = prep.muscle[pre.free]
     has_cage = np.diff(prep.cages.ptr) > 0
@@ -166,10 +219,9 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
     n_muscles = len(prep.offsets) - 1
     sizes = np.maximum(np.diff(prep.offsets), 1)
     cap = int(settings.iterations)
-    record = _record(cap, n_muscles)
+    record = loop.record
     solve_seconds = 0.0
-    started = time.perf_counter()
-    position = np.ascontiguousarray(energy_of.x[:, pre.free].T)
+    position = loop.position
     energy, gradient, volume_gradient = energy_of.evaluate(position)
     if not np.isfinite(energy):
         _not_finite(gradient, free_muscle, names)
@@ -179,7 +231,8 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
     # scene's size (rarely; never on the demo motions)
     travelled = 0.0
     history = LBFGSHistory(int(settings.quasi_static.history), len(pre.free))
-    done, converged, stopped_by = 0, False, TERMINATION_ITERATIONS
+    first = done = loop.iterations
+    converged, stopped_by = False, TERMINATION_ITERATIONS
     accepted = 1.0                  # the last accepted step fraction
     stalled = 0     # steps in a row that lowered the energy by no more than its rounding
     while done < cap:
@@ -187,10 +240,11 @@ def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
             energy_of.contact_figures()
         record.energy[done] = energy
         tick = time.perf_counter()
-        if done % VOLUME_REFRESH == 0:
+        if (done - first) % VOLUME_REFRESH == 0:
             h0 = InitialInverseHessian(pre, free_muscle, volume_stiffness, volume_gradient)
         step, largest, slope = _step(gradient, history, _with_contacts(h0, energy_of, settings),
-                                     record.residual, done, tolerance, stalled > 0)
+                                     record.residual[first:], done - first, tolerance,
+                                     stalled > 0)
         solve_seconds += time.perf_counter() - tick
         done += 1
         if largest <= tolerance:

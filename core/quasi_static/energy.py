@@ -218,7 +218,9 @@ class ContactEnergy:
 
     def __init__(self, model, prep, pre: Preconditioner, spheres, settings, x, weight,
                  solids=None, target=None):
-        self.prep, self.pre, self.weight = prep, pre, weight
+        self.prep, self.pre = prep, pre
+        self.full_weight = weight                   # (n,) g/s^2 the contacts' stiffness
+        self.weight = weight.copy()                 # the one in use (:meth:`soften`)
         self.x = x                                  # (3, n) mm, fixed particles posed
         # the connective tissue's targets (3 or 6, n): the posed particles (None: no tissue)
         self.target = target if pre.tissue.any() else None
@@ -274,6 +276,16 @@ class ContactEnergy:
         self.lists_built = False
         self.rebuilds = 0
         self.seconds = np.zeros(3)       # elastic, muscle contacts, bone contacts
+
+    def soften(self, fraction: float) -> None:
+        """Every contact's stiffness to ``fraction`` of the full (1: the full, bit for bit);
+        the next :meth:`evaluate` uses it."""
+        np.multiply(self.full_weight, fraction, out=self.weight)
+
+    def has_contacts(self) -> bool:
+        """Whether the settings leave any contact penalty in the energy."""
+        return bool(self.spheres.count and (self.muscle_muscle or self.muscle_bone)
+                    or self.solids is not None and len(self.solid_points))
 
     def _refresh_lists(self):
         """Rebuild the contact candidate lists when a sphere moved half the skin."""
