@@ -17,11 +17,13 @@ Table 3, each scene's motion (thigh walk 21 time points, elbow 13; N ``--walk-si
 ``--ratio``) solved in time order cold (each from its posed state) and warm (from the last
 solution carried by the pose change): seconds, iterations, converged, and how far the two
 answers are apart at the most flexed pose.
-Table 4 (``--levers``), per scene, pose and N: the contacts between muscles in the
-preconditioner off (the default) and on (``contact_preconditioner``): iterations, seconds of the
-solver filter's first update of the pose, the ratio to the paper's 500 relaxation iterations on
-the same pose in the same run, distance to a 10x tighter solve, energy and distance against the
-solve with them off, volume error, the muscle pairs left overlapping.
+Table 4 (``--levers``), per scene, pose and N: the solve in one stage and with the contacts
+softened first (``soft_start``, the default), each with and without the contacts between
+muscles in the preconditioner (``contact_preconditioner``): iterations, seconds of the solver
+filter's first update of the pose, the ratio to the paper's 500 relaxation iterations on the
+same pose in the same run, distance to a 10x tighter solve, energy and distance against the
+one-stage solve without the contacts in the preconditioner, volume error, the muscle pairs
+left overlapping.
 Machine and load in the tables; written to benchmarks/results/ (``--out``).
 
     python benchmarks/bench_quasi_static.py [--scenes thigh arm] [--sizes 20 80]
@@ -47,7 +49,7 @@ from muscle_mss.core.demo.scene import demo_scene
 from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_SHORTENING,
-                                      DEFAULT_ITERATIONS, DEFAULT_SPRINGS,
+                                      DEFAULT_ITERATIONS, DEFAULT_SOFT_START, DEFAULT_SPRINGS,
                                       DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
                                       METHOD_QUASI_STATIC, METHOD_RELAXATION, SPRING_ENERGIES,
                                       SolverSettings)
@@ -167,9 +169,19 @@ def first_update(model, bones, solids, settings):
     return result, time.perf_counter() - tick
 
 
+# Table 4's solver configurations: (label, settings): the one-stage solve without the contacts
+# in the preconditioner first (the reference of the energy and distance columns), each lever
+# alone, both.
+LEVERS = (("one stage", dict(soft_start=1.0, contact_preconditioner=False)),
+          ("soft start (default)", dict(soft_start=DEFAULT_SOFT_START,
+                                        contact_preconditioner=False)),
+          ("contacts in preconditioner", dict(soft_start=1.0, contact_preconditioner=True)),
+          ("both", dict(soft_start=DEFAULT_SOFT_START, contact_preconditioner=True)))
+
+
 def lever_rows(model, bones, solids, args, paper_model):
-    """Table 4's rows of one pose: the quasi-static solve without and with the contacts in its
-    preconditioner (each a first update), the second's distance to a 10x tighter solve, and the
+    """Table 4's rows of one pose: the quasi-static solve in each of :data:`LEVERS` (each a
+    first update), its distance to a 10x tighter solve of the same configuration, and the
     paper's 500 relaxation iterations on the same pose in the same run."""
     def paper_settings(iterations):
         return SolverSettings.build(method=METHOD_RELAXATION, iterations=iterations,
@@ -178,22 +190,20 @@ def lever_rows(model, bones, solids, args, paper_model):
 
     # the kernels of both methods and both preconditioners loaded before anything is timed
     first_update(paper_model, bones, solids, paper_settings(2))
-    for on in (False, True):
-        first_update(model, bones, solids, chosen(args, iterations=2,
-                                                  contact_preconditioner=on))
+    for _, lever in LEVERS:
+        first_update(model, bones, solids, chosen(args, iterations=2, **lever))
     paper, paper_seconds = first_update(paper_model, bones, solids, paper_settings(500))
     rows, before = [], None
-    for on in (False, True):
-        settings = chosen(args, iterations=args.cap, connective_tissue=args.ratio,
-                          contact_preconditioner=on)
+    for label, lever in LEVERS:
+        settings = chosen(args, iterations=args.cap, connective_tissue=args.ratio, **lever)
         result, seconds = first_update(model, bones, solids, settings)
         tight, _ = first_update(model, bones, solids, chosen(
             args, iterations=3 * args.cap, tolerance=DEFAULT_TOLERANCE / 10,
-            connective_tissue=args.ratio, contact_preconditioner=on))
+            connective_tissue=args.ratio, **lever))
         prepared = prepare(model)
         before = before or result
-        rows.append((on, result.iterations, seconds, seconds / paper_seconds, result.converged,
-                     *distance(result.positions, tight.positions),
+        rows.append((label, result.iterations, seconds, seconds / paper_seconds,
+                     result.converged, *distance(result.positions, tight.positions),
                      100.0 * (result.energy[-1] / before.energy[-1] - 1.0),
                      *distance(result.positions, before.positions),
                      *cage_volume_error(prepared, result.positions),
@@ -329,22 +339,26 @@ def main(args):
                 lines.append(f"| {scene} | {n} | {mode} | {count} | {sec:.1f} | {slowest:.1f} "
                              f"| {it} | {median} / {most} | {conv} | {load:.2f} | {gap} |")
     if table4:
-        lines += ["", "Table 4: the contacts between muscles in the preconditioner "
-                  "(docs/solver-notes.md, \"Contacts in the preconditioner\"), off (the default) "
-                  "and on (QuasiStaticSettings.contact_preconditioner), each pose's solve as the solver filter's first "
-                  "update (preparation included), the defaults otherwise. x paper: its seconds "
+        lines += ["", "Table 4: the levers on the iteration count (docs/solver-notes.md): "
+                  "the contacts softened in a first stage (QuasiStaticSettings.soft_start, "
+                  "\"Soft contacts first\"; one stage: soft_start 1) and the contacts between "
+                  "muscles in the preconditioner (contact_preconditioner, \"Contacts in the "
+                  "preconditioner\"), each alone and both, each pose's solve as the solver "
+                  "filter's first update (preparation included), the defaults otherwise. x "
+                  "paper: its seconds "
                   "over the paper's 500 relaxation iterations on the same pose in the same run "
                   "(their seconds in the last column). To tighter: to the same solve at "
                   f"Tolerance {DEFAULT_TOLERANCE / 10} mm. Energy and distance against the "
-                  "solve with the preconditioner off (mean / max mm, after the final passes); "
+                  "one-stage solve without the contacts in the preconditioner (the answer "
+                  "before either lever; mean / max mm, after the final passes); "
                   "cage volume error mean / max %; muscle pairs overlapping at the end.", "",
-                  "| scene | N | pose | contacts in preconditioner | iterations | seconds | "
-                  "x paper | converged | to tighter | energy vs off % | to off | "
+                  "| scene | N | pose | solver | iterations | seconds | "
+                  "x paper | converged | to tighter | energy vs one stage % | to one stage | "
                   "cage volume error % | muscle pairs | paper 500 it. s | load |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for (scene, n, label, on, it, sec, ratio, conv, tm, tx, energy, om, ox, vm, vx,
+        for (scene, n, label, lever, it, sec, ratio, conv, tm, tx, energy, om, ox, vm, vx,
              pairs, paper, load) in table4:
-            lines.append(f"| {scene} | {n} | {label} | {'on' if on else 'off'} | {it} | "
+            lines.append(f"| {scene} | {n} | {label} | {lever} | {it} | "
                          f"{sec:.2f} | {ratio:.1f} | {yes[conv]} | {tm:.3f} / {tx:.2f} | "
                          f"{energy:+.2f} | {om:.2f} / {ox:.1f} | {vm:.2f} / {vx:.2f} | "
                          f"{pairs} | {paper:.2f} | {load:.2f} |")
@@ -376,7 +390,7 @@ if __name__ == "__main__":
     parser.add_argument("--table1", action=argparse.BooleanOptionalAction, default=True,
                         help="Table 1 (the tissue's effect on each pose)")
     parser.add_argument("--levers", action=argparse.BooleanOptionalAction, default=True,
-                        help="Table 4 (the contacts in the preconditioner, off and on)")
+                        help="Table 4 (the levers on the iteration count, each alone and both)")
     parser.add_argument("--out", default="quasi_static.md",
                         help="file name in benchmarks/results/")
     main(parser.parse_args())
