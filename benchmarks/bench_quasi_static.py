@@ -17,8 +17,8 @@ Table 3, each scene's motion (thigh walk 21 time points, elbow 13; N ``--walk-si
 ``--ratio``) solved in time order cold (each from its posed state) and warm (from the last
 solution carried by the pose change): seconds, iterations, converged, and how far the two
 answers are apart at the most flexed pose.
-Table 4 (``--levers``), per scene, pose and N: the solve in one stage and with the contacts
-softened first (``soft_start``, the default), each with and without the contacts between
+Table 4 (``--levers``), per scene, pose and N: the solve in one stage (the default) and with the
+contacts softened first (``soft_start``, ``--soft-start``), each with and without the contacts between
 muscles in the preconditioner (``contact_preconditioner``): iterations, seconds of the solver
 filter's first update of the pose, the ratio to the paper's 500 relaxation iterations on the
 same pose in the same run, distance to a 10x tighter solve, energy and distance against the
@@ -30,6 +30,7 @@ Machine and load in the tables; written to benchmarks/results/ (``--out``).
         [--ratio 0.1] [--sweep 0 0.001 0.003 0.01 0.03 0.1] [--cap 2000] [--walk-cap 2000]
         [--[no-]fibre-shortening] [--springs Hooke|co-rotational] [--contact-weight 1.0]
         [--walk-sizes 20 80] [--walk-modes cold warm] [--[no-]table1] [--[no-]levers]
+        [--soft-start 0.3]
         [--out quasi_static.md]
 
 Every option defaults to the solver's default (the model a user gets).
@@ -49,10 +50,10 @@ from muscle_mss.core.demo.scene import demo_scene
 from muscle_mss.core.model import Bones, prepare
 from muscle_mss.core.fibre_shortening import shortened_springs
 from muscle_mss.core.settings import (DEFAULT_CONNECTIVE_TISSUE, DEFAULT_FIBRE_SHORTENING,
-                                      DEFAULT_ITERATIONS, DEFAULT_SOFT_START, DEFAULT_SPRINGS,
+                                      DEFAULT_ITERATIONS, DEFAULT_SPRINGS,
                                       DEFAULT_TISSUE_ALONG, DEFAULT_TOLERANCE,
                                       METHOD_QUASI_STATIC, METHOD_RELAXATION, SPRING_ENERGIES,
-                                      SolverSettings)
+                                      QuasiStaticSettings, SolverSettings)
 from muscle_mss.filters import vtk_arrays as V
 from muscle_mss.filters.bone_sets import bone_sphere_set
 from muscle_mss.filters.bone_sets import solid_bones
@@ -169,18 +170,22 @@ def first_update(model, bones, solids, settings):
     return result, time.perf_counter() - tick
 
 
-# Table 4's solver configurations: (label, settings): the one-stage solve without the contacts
-# in the preconditioner first (the reference of the energy and distance columns), each lever
-# alone, both.
-LEVERS = (("one stage", dict(soft_start=1.0, contact_preconditioner=False)),
-          ("soft start (default)", dict(soft_start=DEFAULT_SOFT_START,
-                                        contact_preconditioner=False)),
-          ("contacts in preconditioner", dict(soft_start=1.0, contact_preconditioner=True)),
-          ("both", dict(soft_start=DEFAULT_SOFT_START, contact_preconditioner=True)))
+def levers(soft_start) -> tuple:
+    """Table 4's solver configurations ``(label, settings)``: the one-stage solve without the
+    contacts in the preconditioner first (the reference of the energy and distance columns),
+    each lever alone (the first stage at ``soft_start``), both; the defaults' row marked."""
+    rows = (("one stage", dict(soft_start=1.0, contact_preconditioner=False)),
+            ("soft start", dict(soft_start=soft_start, contact_preconditioner=False)),
+            ("contacts in preconditioner", dict(soft_start=1.0, contact_preconditioner=True)),
+            ("both", dict(soft_start=soft_start, contact_preconditioner=True)))
+    default = QuasiStaticSettings()
+    return tuple((label + (" (default)" if all(getattr(default, k) == v for k, v in
+                                                 lever.items()) else ""), lever)
+                 for label, lever in rows)
 
 
 def lever_rows(model, bones, solids, args, paper_model):
-    """Table 4's rows of one pose: the quasi-static solve in each of :data:`LEVERS` (each a
+    """Table 4's rows of one pose: the quasi-static solve in each of :func:`levers` (each a
     first update), its distance to a 10x tighter solve of the same configuration, and the
     paper's 500 relaxation iterations on the same pose in the same run."""
     def paper_settings(iterations):
@@ -190,11 +195,11 @@ def lever_rows(model, bones, solids, args, paper_model):
 
     # the kernels of both methods and both preconditioners loaded before anything is timed
     first_update(paper_model, bones, solids, paper_settings(2))
-    for _, lever in LEVERS:
+    for _, lever in levers(args.soft_start):
         first_update(model, bones, solids, chosen(args, iterations=2, **lever))
     paper, paper_seconds = first_update(paper_model, bones, solids, paper_settings(500))
     rows, before = [], None
-    for label, lever in LEVERS:
+    for label, lever in levers(args.soft_start):
         settings = chosen(args, iterations=args.cap, connective_tissue=args.ratio, **lever)
         result, seconds = first_update(model, bones, solids, settings)
         tight, _ = first_update(model, bones, solids, chosen(
@@ -389,6 +394,9 @@ if __name__ == "__main__":
                         default=["cold", "warm"], help="Table 3's starts")
     parser.add_argument("--table1", action=argparse.BooleanOptionalAction, default=True,
                         help="Table 1 (the tissue's effect on each pose)")
+    parser.add_argument("--soft-start", type=float, default=0.3,
+                        help="Table 4's first-stage contact stiffness, a fraction of the full "
+                        "(QuasiStaticSettings.soft_start; docs/solver-notes.md)")
     parser.add_argument("--levers", action=argparse.BooleanOptionalAction, default=True,
                         help="Table 4 (the levers on the iteration count, each alone and both)")
     parser.add_argument("--out", default="quasi_static.md",

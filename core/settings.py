@@ -116,11 +116,11 @@ DEFAULT_CONTACT_WEIGHTS = {SPRINGS_HOOKE: 0.3, SPRINGS_COROTATIONAL: 1.0}
 # compressed and so converge the flexed poses in a fraction of the iterations.
 DEFAULT_SPRINGS = SPRINGS_COROTATIONAL
 # The contacts' stiffness in the quasi-static solve's first stage, a fraction of the full
-# (1: one stage). Muscles pressed on each other slide into place far sooner against softer
-# contacts (the demo thigh's most flexed pose: 471 iterations in one stage, 289 in two); the
-# second stage, at the full stiffness, starts from there (docs/solver-notes.md, "Soft contacts
-# first").
-DEFAULT_SOFT_START = 0.3
+# (1: one stage, the default). Against contacts at 0.3 the muscles pressed on each other slide
+# into place sooner (N = 20: the demo thigh's most flexed pose 471 iterations in one stage, 289
+# in two), but at N = 80 the path ends in other equilibria, two of them of more energy (the
+# elbow +0.5 %): docs/solver-notes.md, "Soft contacts first".
+DEFAULT_SOFT_START = 1.0
 
 
 @dataclass(slots=True)

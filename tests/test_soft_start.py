@@ -11,7 +11,7 @@ from muscle_mss.core import quasi_static as Q
 from muscle_mss.core.errors import MuscleMSSError
 
 from test_contact_preconditioner import pressed_lattices
-from test_quasi_static import quasi_static
+from test_quasi_static import quasi_static, stretched  # noqa: F401 (a fixture)
 
 
 def solve(model, **values):
@@ -40,6 +40,15 @@ def test_soft_start_ends_at_the_equilibrium_of_the_full_contact_stiffness(monkey
     assert not (np.diff(one.energy) > 1e-9 * abs(one.energy[-1])).any()
     # the soft stage presses deeper: more overlap at its end than at the answer
     assert two.max_penetration[rises[0]] > 1.5 * two.max_penetration[-1]
+
+
+def test_a_model_at_rest_ends_in_one_iteration_with_a_soft_start(stretched):
+    """The first stage meets the tolerance at once with no contact touching: the softened and
+    the full energy agree there, so no second stage runs."""
+    rest = S.MSSModel(**{**stretched.__dict__, "positions": stretched.rest_positions.copy()})
+    result = Q.solve(rest, settings=quasi_static(soft_start=0.3))
+    assert result.converged and result.iterations == 1 and result.residual[0] < 1e-12
+    np.testing.assert_allclose(result.positions, rest.positions, atol=1e-9)
 
 
 def test_a_cap_spent_in_the_soft_stage_is_not_converged():

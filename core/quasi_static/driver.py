@@ -155,9 +155,9 @@ def solve(model: MSSModel, bones: Bones | None = None, settings: SolverSettings 
 
 def _minimise(prep, pre, settings, energy_of, spheres, progress, names, size):
     """The L-BFGS iterations from the positions ``energy_of`` holds, in stages
-    (:func:`_stages`: the contacts softened first, then at their full stiffness), until the
-    last stage's tolerance, the cap, the budget or a failed line search (:class:`LoopOutcome`,
-    the stages' iterations in one record). Raises
+    (:func:`_stages`: one by default; with ``soft_start`` the contacts softened first, then at
+    their full stiffness), until the last stage's tolerance, the cap, the budget or a failed
+    line search (:class:`LoopOutcome`, the stages' iterations in one record). Raises
     :class:`~muscle_mss.core.errors.PoseError` naming the muscle (of ``names``) when the energy
     at the start is not finite or a particle gets farther from a stage's start than ``size``
     mm (:func:`~muscle_mss.core.divergence.scene_size`, :func:`_check_reach`): the energy has
