@@ -6,7 +6,7 @@ the filter's bone spheres and bones as solids.
 Every quasi-static solve uses the spring energy ``--springs`` and the contact weight
 ``--contact-weight`` (the solver's defaults unless given).
 Table 1, per scene, pose and N (particles per fibre), at ConnectiveTissue ``--ratio``:
-iterations and seconds of the solve (Tolerance 1e-3 mm, cap ``--cap``), whether it converged,
+iterations and seconds of the solve (the default Tolerance, cap ``--cap``), whether it converged,
 its last step, the distance of its particles to a 10x tighter solve, to the solve without
 tissue at the same cap and to the paper relaxation (500 iterations, no tissue), mean / max mm,
 and the tissue's share of each muscle's load (median / max %).
