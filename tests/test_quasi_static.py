@@ -416,8 +416,8 @@ def test_solid_bone_pushes_a_lattice_out_on_the_near_side_with_its_clearance():
 
 def test_solid_penalty_skips_particles_far_from_the_bones_and_solves_the_same(monkeypatch):
     """The bones' penalty looks only at the particles listed near a bone (within radius,
-    clearance and skin when the list was made, remade when one moved half the skin): the
-    solve is bitwise the one that looks at every particle every time."""
+    clearance and skin when a particle's entry was made, remade when it moved half the skin):
+    the solve is bitwise the one that looks at every particle every time."""
     model, _, solids, _ = chain_in_a_box(3.0)
     settings = quasi_static(tolerance=1e-4, iterations=3000)
     listed_sizes = []

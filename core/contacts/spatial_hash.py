@@ -293,22 +293,36 @@ def scan_grid(i, query, q_radius, q_object, table, skin, pad, out, first, room, 
 def candidate_lists(query, q_radius, q_object, table, skin):
     """For every query sphere, the target spheres of another object within
     ``r_i + r_j + skin`` mm: ``(begin (nq,), end (nq,), idx)``, sphere ``i``'s list being
-    ``idx[begin[i]:end[i]]`` in increasing index order; ``table`` from :func:`grid_table` of
-    the targets; ``idx`` int32, as the sphere lists' (one type for :func:`scan_grid`)."""
+    ``idx[begin[i]:end[i]]`` in increasing index order (the lists need not be adjacent in
+    ``idx``); ``table`` from :func:`grid_table` of the targets; ``idx`` int32, as the sphere
+    lists' (one type for :func:`scan_grid`). One scan of the grid when every list fits in
+    :data:`INITIAL_ROOM` slots (each sphere writes its own; half the time of counting first),
+    else a second scan into lists sized by the first's counts."""
     nq = query.shape[1]
-    counts = np.zeros(nq + 1, dtype=np.int64)
     none = np.empty(0, dtype=np.int64)
-    no_room = np.empty(0, dtype=np.int32)
+    found = np.empty(nq, dtype=np.int64)
+    idx = np.empty(nq * INITIAL_ROOM, dtype=np.int32)
     for i in prange(nq):
-        counts[i + 1] = scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0,
-                                  no_room, np.int64(0), np.int64(0), none, np.bool_(False))
+        found[i] = scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0, idx,
+                             np.int64(i * INITIAL_ROOM), np.int64(INITIAL_ROOM), none,
+                             np.bool_(False))
+    begin = np.empty(nq, dtype=np.int64)
+    most = 0
     for i in range(nq):
-        counts[i + 1] += counts[i]
-    idx = np.empty(counts[nq], dtype=np.int32)
+        most = max(most, found[i])
+    if most <= INITIAL_ROOM:
+        for i in range(nq):
+            begin[i] = i * INITIAL_ROOM
+        return begin, begin + found, idx
+    total = 0
+    for i in range(nq):
+        begin[i] = total
+        total += found[i]
+    idx = np.empty(total, dtype=np.int32)
     for i in prange(nq):
-        scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0, idx, counts[i],
-                  counts[i + 1] - counts[i], counts, np.bool_(False))
-    return counts[:-1].copy(), counts[1:].copy(), idx
+        scan_grid(np.int64(i), query, q_radius, q_object, table, skin, 0.0, idx, begin[i],
+                  found[i], none, np.bool_(False))
+    return begin, begin + found, idx
 
 
 @njit(cache=True, parallel=True)

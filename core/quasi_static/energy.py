@@ -199,6 +199,18 @@ def free_rows(field, free):
     return out
 
 
+@njit(cache=True, parallel=True)
+def moved_flags(x, particle, built, limit, moved):
+    """``moved[i]``: whether sphere ``i``'s particle ``particle[i]`` is farther than ``limit``
+    mm from ``built[:, i]`` (3, s) (a NaN there: yes)."""
+    for i in prange(particle.shape[0]):
+        p = particle[i]
+        d2 = 0.0
+        for axis in range(3):
+            d2 += (x[axis, p] - built[axis, i]) ** 2
+        moved[i] = not d2 <= limit * limit
+
+
 @njit(cache=True)
 def moved_more(x, particle, built, limit):
     """Whether a sphere's particle is farther than ``limit`` mm from ``built`` (3, s)."""
@@ -257,11 +269,12 @@ class ContactEnergy:
         self.solid_energy = np.zeros(k)
         self.solid_overlaps = np.zeros((k, 2), dtype=np.int64)
         self.solid_deepest = np.zeros(k)
-        # the solid points within their radius plus clearance plus the skin of a bone when
-        # the list was built (at positions solid_built): the others cannot touch a bone
-        # before one of them moves half the skin (a sampled distance changes by at most sqrt(3)
-        # times a move), so the penalty skips them
-        self.solid_built = np.zeros((3, k))
+        # each solid point's bones within its radius plus clearance plus the skin when its
+        # entry was made (at its place in solid_built; NaN: not yet): it cannot touch another
+        # before it moves half the skin (a sampled distance changes by at most sqrt(3) times a
+        # move; the bones hold still), so the penalty skips those bones until then
+        self.solid_built = np.full((3, k), np.nan)
+        self.solid_moved = np.zeros(k, dtype=np.bool_)
         self.solid_near = np.zeros((k, len(solids.clearance) if solids is not None else 0),
                                    dtype=np.bool_)
         self.near = None                 # (indices into solid_points, their particles, ...)
@@ -312,16 +325,22 @@ class ContactEnergy:
         self.rebuilds += 1
 
     def _refresh_near_solids(self):
-        """Rebuild the list of solid points near a bone when one of them moved half the skin
-        since (see ``solid_built``)."""
-        if self.near is not None and not moved_more(self.x, self.solid_points,
-                                                     self.solid_built, 0.5 * self.skin):
-            return
+        """Remake the entries of the solid points that moved half the skin since theirs were
+        made (see ``solid_built``), and the list of those near a bone if an entry changed."""
         solids = self.solids
-        self.solid_built[:] = self.x[:, self.solid_points]
-        near_solids(self.x, self.solid_points, self.solid_radius,
-                    solids.clearance + self.skin, solids.transforms, solids.fields.grid(),
-                    self.solid_near)
+        moved_flags(self.x, self.solid_points, self.solid_built, 0.5 * self.skin,
+                    self.solid_moved)
+        moved = np.flatnonzero(self.solid_moved)
+        if not len(moved):
+            return
+        points = self.solid_points[moved]
+        self.solid_built[:, moved] = self.x[:, points]
+        near = np.zeros((len(moved), self.solid_near.shape[1]), dtype=np.bool_)
+        near_solids(self.x, points, self.solid_radius[moved], solids.clearance + self.skin,
+                    solids.transforms, solids.fields.grid(), near)
+        if self.near is not None and np.array_equal(near, self.solid_near[moved]):
+            return
+        self.solid_near[moved] = near
         index = np.flatnonzero(self.solid_near.any(axis=1))
         k = len(index)
         self.near = (index, self.solid_points[index], self.solid_radius[index],
