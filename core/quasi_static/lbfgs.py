@@ -28,9 +28,20 @@ def inner(a, b) -> float:
     return float(_inner(np.ascontiguousarray(a).reshape(-1), np.ascontiguousarray(b).reshape(-1)))
 
 
+@njit(cache=True)
+def _largest_square(step):
+    largest = 0.0
+    for i in range(step.shape[0]):
+        square = step[i, 0] * step[i, 0] + step[i, 1] * step[i, 1] + step[i, 2] * step[i, 2]
+        if square != square:
+            return square               # NaN: a move that is not finite
+        largest = max(largest, square)
+    return largest
+
+
 def largest_move(step) -> float:
-    """The largest particle move (mm) of ``step`` (f, 3)."""
-    return float(np.sqrt(np.einsum("ij,ij->i", step, step).max(initial=0.0)))
+    """The largest particle move (mm) of ``step`` (f, 3) (NaN if one is not finite)."""
+    return float(np.sqrt(_largest_square(np.ascontiguousarray(step))))
 
 
 def distance_to_go(residual) -> float:
