@@ -33,14 +33,6 @@ BACKTRACKS = 40                 # line search halvings before the solve gives up
 # trial that follows the last accepted fraction saves about 40 % of the energy evaluations
 # (docs/solver-notes.md, "What paid").
 STEP_GROWTH = 1.5
-# ... and at most the step to the minimum of the parabola through the energy's last decrease
-# and the slope along the new direction, times this (Nocedal and Wright, eq. 3.60): where the
-# last step was cut, the first trial then lands near the line's minimum and is accepted (an
-# evaluation an iteration instead of 1.4 at the flexed thigh: 595 -> 448 for 423 -> 444
-# iterations, 8.5 -> 6.5 s; docs/solver-notes.md, "The line search's first trial").
-DECREASE_STEP = 1.01
-# The least first trial the last decrease can ask for (of the full step).
-SMALLEST_FIRST_TRIAL = 1e-3
 # Energies are sums of ~1e5 terms: a trial point whose energy is higher by less than this
 # fraction of the energy is rounding, not an increase (the last steps of a tight solve).
 ENERGY_ROUNDING = 1e-13
@@ -242,7 +234,6 @@ def _iterate(prep, pre, settings, energy_of, spheres, progress, names, size, loo
     first = done = loop.iterations
     converged, stopped_by = False, TERMINATION_ITERATIONS
     accepted = 1.0                  # the last accepted step fraction
-    decrease = None                 # the energy's decrease by the last accepted step
     stalled = 0     # steps in a row that lowered the energy by no more than its rounding
     while done < cap:
         record.muscle_pairs[done], record.bone_pairs[done], record.max_penetration[done] = \
@@ -261,8 +252,7 @@ def _iterate(prep, pre, settings, energy_of, spheres, progress, names, size, loo
             record.seconds[done - 1] = time.perf_counter() - started
             break
         trial = _line_search(energy_of, position, energy, step, slope,
-                             _first_trial(step_limit / largest, accepted,
-                                          None if stalled else decrease, slope))
+                             min(1.0, step_limit / largest, STEP_GROWTH * accepted))
         if trial is None:
             energy_of.evaluate(position)
             stopped_by = "line search"
@@ -272,8 +262,7 @@ def _iterate(prep, pre, settings, energy_of, spheres, progress, names, size, loo
         moved = trial - position
         change = trial_gradient - gradient
         curvature = inner(moved, change)
-        decrease = energy - trial_energy
-        stalled = stalled + 1 if decrease <= ENERGY_ROUNDING * abs(energy) else 0
+        stalled = stalled + 1 if energy - trial_energy <= ENERGY_ROUNDING * abs(energy) else 0
         if settings.quasi_static.history and curvature > 1e-12 * np.sqrt(
                 inner(moved, moved) * inner(change, change)):
             history.add(moved, change, 1.0 / curvature)
@@ -372,21 +361,6 @@ def _step(gradient, history, h0, residual, done, tolerance, at_rounding=False):
         largest = largest_move(step)
         slope = inner(gradient, step)
     return step, largest, slope
-
-
-def _first_trial(limit, accepted, decrease, slope) -> float:
-    """The line search's first step fraction: at most the full step, ``limit`` (the fraction
-    that moves no particle farther than the largest sphere radius), :data:`STEP_GROWTH` times
-    the last ``accepted`` fraction and, given the energy's ``decrease`` by the last step (None:
-    the first iteration, or a decrease lost in rounding), :data:`DECREASE_STEP` times the
-    fraction to the minimum of the parabola that falls by ``decrease`` with the new direction's
-    ``slope`` (< 0) at its start (not below :data:`SMALLEST_FIRST_TRIAL`)."""
-    first = min(1.0, limit, STEP_GROWTH * accepted)
-    if decrease is not None:
-        to_parabola = DECREASE_STEP * 2.0 * decrease / -slope
-        if np.isfinite(to_parabola):
-            first = min(first, max(to_parabola, SMALLEST_FIRST_TRIAL))
-    return first
 
 
 def _line_search(energy_of, position, energy, step, slope, alpha):
