@@ -225,7 +225,7 @@ class InitialInverseHessian:
 
     def __init__(self, pre: Preconditioner, free_muscle, volume_stiffness, volume_gradient):
         self.pre, self.free_muscle, self.c = pre, free_muscle, volume_stiffness
-        self.g = volume_gradient
+        self.g = np.ascontiguousarray(volume_gradient, dtype=np.float64)
         self.solved_g = None
         self.self_term = None
 
@@ -243,7 +243,9 @@ class InitialInverseHessian:
             return self.pre.solve(rhs)
         if self.solved_g is None:
             both = self.pre.solve(np.concatenate([rhs, self.g], axis=1))
-            out, self.solved_g = both[:, :3], both[:, 3:]
+            # contiguous, as the plain solve's: one signature of _remove_volume_mode
+            out = np.ascontiguousarray(both[:, :3])
+            self.solved_g = np.ascontiguousarray(both[:, 3:])
             self.self_term = np.bincount(self.free_muscle, np.einsum(
                 "ij,ij->i", self.g, self.solved_g), minlength=len(self.c))
         else:
