@@ -132,6 +132,111 @@ def test_matches_scipy_minimiser_of_the_same_energy_on_a_few_particles():
     np.testing.assert_allclose(result.positions, expected, atol=1e-5)
 
 
+def spring_gradient_and_hessian(model, x):
+    """The Hooke springs' energy gradient (n, 3) and dense Hessian (3n, 3n) at ``x``, one
+    spring at a time (g mm/s^2, g/s^2)."""
+    n = len(x)
+    gradient, hessian = np.zeros((n, 3)), np.zeros((3 * n, 3 * n))
+    for (a, b), rest, k in zip(model.springs, model.rest_length, model.stiffness):
+        d = x[b] - x[a]
+        length = np.linalg.norm(d)
+        unit = d / length
+        gradient[b] += k * (length - rest) * unit
+        gradient[a] -= k * (length - rest) * unit
+        block = k * ((1.0 - rest / length) * np.eye(3) + rest / length * np.outer(unit, unit))
+        for p, q, sign in ((a, a, 1.0), (b, b, 1.0), (a, b, -1.0), (b, a, -1.0)):
+            hessian[3 * p:3 * p + 3, 3 * q:3 * q + 3] += sign * block
+    return gradient, hessian
+
+
+def constrained_reference(model, bone, start):
+    """The chain's contact problem with exact constraints: the springs' energy at its least
+    with every free sphere out of the bone sphere (|x_i - c| >= r_i + R), by Newton's method
+    on the KKT conditions with the dense Hessian, the active set changed until every
+    multiplier pushes and no other sphere overlaps. ``start`` (n, 3): where Newton starts
+    and its first active set (spheres overlapping there). Returns the positions (n, 3) and
+    each particle's contact force (n,) g mm/s^2 (the multiplier; 0 off the bone)."""
+    centre, radius = bone[0][0], bone[1][0]
+    free = np.flatnonzero(~model.fixed)
+    reach = model.radius + radius
+    x = start.copy()
+    active = free[np.linalg.norm(x[free] - centre, axis=1) < reach[free]]
+    rows = (3 * free[:, None] + np.arange(3)).ravel()
+    for _ in range(len(free) + 1):                  # active-set changes
+        force = np.zeros(len(x))
+        for _ in range(50):                         # Newton steps
+            gradient, hessian = spring_gradient_and_hessian(model, x)
+            offset = x[active] - centre
+            distance = np.linalg.norm(offset, axis=1)
+            normal = offset / distance[:, None]
+            jacobian = np.zeros((len(active), 3 * len(x)))
+            for row, (i, nrm) in enumerate(zip(active, normal)):
+                jacobian[row, 3 * i:3 * i + 3] = nrm
+                hessian[3 * i:3 * i + 3, 3 * i:3 * i + 3] -= force[i] / distance[row] * (
+                    np.eye(3) - np.outer(nrm, nrm))
+            residual = np.concatenate([gradient.ravel()[rows] - jacobian[:, rows].T
+                                       @ force[active], distance - reach[active]])
+            if np.abs(residual).max() < 1e-10:
+                break
+            system = np.block([[hessian[np.ix_(rows, rows)], -jacobian[:, rows].T],
+                               [jacobian[:, rows], np.zeros((len(active),) * 2)]])
+            delta = np.linalg.solve(system, -residual)
+            x[free] += delta[:len(rows)].reshape(-1, 3)
+            force[active] += delta[len(rows):]
+        else:
+            raise AssertionError("Newton did not converge")
+        pulling = active[force[active] < 0.0]
+        gap = np.linalg.norm(x[free] - centre, axis=1) - reach[free]
+        entering = free[(gap < -1e-12) & ~np.isin(free, active)]
+        if not len(pulling) and not len(entering):
+            return x, force
+        active = np.union1d(np.setdiff1d(active, pulling), entering)
+    raise AssertionError("no consistent active set")
+
+
+def test_penalty_answers_tend_to_the_exact_contact_problem_solved_by_newton():
+    """The penalty contact is a stand-in for the constraint 'no sphere in the bone': as its
+    stiffness grows, the solver's answer (no final passes) goes to the exact constrained
+    minimiser at the rate of the penalty (a tenth of the distance, about the overlap, for ten
+    times the stiffness), and each sphere's penalty force to its multiplier (3 % -> 0.3 %),
+    every one of them pushing.
+    At each answer the net force (springs plus the penalty) on every free particle is below
+    the tolerance's equivalent, and the springs press every contact sphere into the bone."""
+    model, bone = chain_on_a_ball()
+    prep = S.prepare(model)
+    centre, radius = bone[0][0], bone[1][0]
+    free = ~model.fixed
+    stiffness = chain_contact_stiffness(model, prep)
+    tolerance = 1e-6        # the stiffer penalty's energy cannot tell steps below 4e-7 mm
+    distances = []
+    for scale in (1.0, 10.0):
+        weight = DEFAULT_CONTACT_WEIGHTS[SPRINGS_HOOKE] * scale
+        result = Q.solve(model, S.Bones(bone), prepared=prep, settings=quasi_static(
+            tolerance=tolerance, iterations=5000, projection_passes=0, contact_weight=weight))
+        assert result.converged
+        x = result.positions
+        exact, multiplier = constrained_reference(model, bone, x)
+        offset = x - centre
+        distance = np.linalg.norm(offset, axis=1)
+        depth = np.maximum(model.radius + radius - distance, 0.0) * free
+        penalty = stiffness * scale * depth                           # g mm/s^2, pushing
+        contact = depth > 0
+        assert contact.sum() >= 2 and np.array_equal(contact, multiplier > 0)
+        assert multiplier.min() >= 0.0                                # the bone only pushes
+        np.testing.assert_allclose(penalty[contact], multiplier[contact], rtol=0.1 / scale)
+        spring_force = -spring_gradient_and_hessian(model, x)[0]
+        outward = offset / distance[:, None]
+        net = spring_force + penalty[:, None] * outward
+        bound = 2 * np.bincount(model.springs.ravel(), np.repeat(model.stiffness, 2)).max() \
+            * tolerance
+        assert np.linalg.norm(net[free], axis=1).max() < bound
+        assert np.all(np.einsum("ij,ij->i", spring_force, outward)[contact] < 0.0)
+        distances.append(np.linalg.norm(x - exact, axis=1).max())
+        assert distances[-1] < 1.5 * depth.max()        # as far off as the spheres overlap
+    assert np.abs(exact - model.positions).max() > 0.5                # it did bend
+    assert distances[1] < 0.15 * distances[0]        # 0.054 -> 0.006 mm
+
+
 def test_contact_stiffness_keeps_the_force_per_length_of_fibre_at_every_resolution():
     """Twice the fibre steps (39 particles per fibre against the reference 20): each particle's
     contact stiffness halves, so a patch pressed as deep pushes as hard per mm of fibre."""
