@@ -211,20 +211,39 @@ def fit_rotations(frame):
         fit_rotation(frame, np.int64(p))
 
 
+@njit(cache=True)
+def _spring_tension(x, ends, stiffness, vectors, frame, tension):
+    """``tension`` (S,) g mm/s^2 of :func:`spring_tension` at ``x`` (n, 3); ``frame`` (n, 9)
+    zeros, left holding each particle's rotation. The frames summed over the springs' first
+    ends and then their second, each in spring order."""
+    for end in range(2):
+        for s in range(ends.shape[0]):
+            a, b, k = ends[s, 0], ends[s, 1], stiffness[s]
+            p = ends[s, end]
+            for i in range(3):
+                kd = k * (x[b, i] - x[a, i])
+                for j in range(3):
+                    frame[p, 3 * i + j] += kd * vectors[s, j]
+    fit_rotations(frame)
+    for s in range(ends.shape[0]):
+        a, b, k = ends[s, 0], ends[s, 1], stiffness[s]
+        total = 0.0
+        for i in range(3):
+            turned = 0.0
+            for j in range(3):
+                turned += (frame[a, 3 * i + j] + frame[b, 3 * i + j]) * vectors[s, j]
+            pull = k * ((x[b, i] - x[a, i]) - 0.5 * turned)
+            total += pull * pull
+        tension[s] = np.sqrt(total)
+
+
 def spring_tension(model, positions) -> np.ndarray:
     """(S,) g mm/s^2: the size of each co-rotational spring's pull ``k (d - (R_a + R_b) D /
     2)`` at ``positions`` (n, 3) mm (input order), for the model's springs and rest pose."""
-    x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    ends = np.asarray(model.springs, dtype=np.int64).reshape(-1, 2)
-    k = np.asarray(model.stiffness, dtype=np.float64)
+    x = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3)
+    ends = np.ascontiguousarray(model.springs, dtype=np.int64).reshape(-1, 2)
+    k = np.ascontiguousarray(model.stiffness, dtype=np.float64)
     state = corotational_state(model.spring_rest_vectors(), len(x))
-    d = x[ends[:, 1]] - x[ends[:, 0]]
-    outer = (k[:, None, None] * d[:, :, None] * state.rest_vectors[:, None, :]).reshape(-1, 9)
-    frame = state.frame
-    np.add.at(frame, ends[:, 0], outer)
-    np.add.at(frame, ends[:, 1], outer)
-    fit_rotations(frame)
-    rotation = frame.reshape(-1, 3, 3)
-    turned = np.einsum("sij,sj->si", rotation[ends[:, 0]] + rotation[ends[:, 1]],
-                       state.rest_vectors)
-    return np.linalg.norm(k[:, None] * (d - 0.5 * turned), axis=1)
+    tension = np.empty(len(ends))
+    _spring_tension(x, ends, k, state.rest_vectors, state.frame, tension)
+    return tension
