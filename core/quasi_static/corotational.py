@@ -165,6 +165,21 @@ def _determinant(m00, m01, m02, m03, m11, m12, m13, m22, m23, m33):
     return s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
 
 
+@njit(cache=True, inline="always")
+def add_spring_frames(x, ends, stiffness, vectors, first, last, frame):
+    """Add the springs ``first:last`` of ``ends`` (S, 2) to their particles' fit matrices
+    ``frame`` (n, 9): ``k d D^T`` row by row on both ends, ``d`` the spring at ``x`` (3, n) mm,
+    ``D`` its rest vector (``vectors`` (S, 3)), ``k`` its ``stiffness`` (S,) g/s^2."""
+    for s in range(first, last):
+        a, b = ends[s, 0], ends[s, 1]
+        k = stiffness[s]
+        for i in range(3):
+            kd = k * (x[i, b] - x[i, a])
+            for j in range(3):
+                frame[a, 3 * i + j] += kd * vectors[s, j]
+                frame[b, 3 * i + j] += kd * vectors[s, j]
+
+
 @njit(cache=True, parallel=True)
 def add_corotational_energy(x, gradient, energy, ends, stiffness, spring_ptr, offsets, state):
     """Add the co-rotational spring energy of every muscle to ``energy`` (M,) and its gradient
@@ -177,14 +192,7 @@ def add_corotational_energy(x, gradient, energy, ends, stiffness, spring_ptr, of
         for p in range(offsets[m], offsets[m + 1]):
             for i in range(9):
                 frame[p, i] = 0.0
-        for s in range(spring_ptr[m], spring_ptr[m + 1]):
-            a, b = ends[s, 0], ends[s, 1]
-            k = stiffness[s]
-            for i in range(3):
-                kd = k * (x[i, b] - x[i, a])
-                for j in range(3):
-                    frame[a, 3 * i + j] += kd * vectors[s, j]
-                    frame[b, 3 * i + j] += kd * vectors[s, j]
+        add_spring_frames(x, ends, stiffness, vectors, spring_ptr[m], spring_ptr[m + 1], frame)
         for p in range(offsets[m], offsets[m + 1]):
             fit_rotation(frame, p)
         e = 0.0
@@ -213,17 +221,9 @@ def fit_rotations(frame):
 
 @njit(cache=True)
 def _spring_tension(x, ends, stiffness, vectors, frame, tension):
-    """``tension`` (S,) g mm/s^2 of :func:`spring_tension` at ``x`` (n, 3); ``frame`` (n, 9)
-    zeros, left holding each particle's rotation. The frames summed over the springs' first
-    ends and then their second, each in spring order."""
-    for end in range(2):
-        for s in range(ends.shape[0]):
-            a, b, k = ends[s, 0], ends[s, 1], stiffness[s]
-            p = ends[s, end]
-            for i in range(3):
-                kd = k * (x[b, i] - x[a, i])
-                for j in range(3):
-                    frame[p, 3 * i + j] += kd * vectors[s, j]
+    """``tension`` (S,) g mm/s^2 of :func:`spring_tension` at ``x`` (3, n); ``frame`` (n, 9)
+    zeros, left holding each particle's rotation."""
+    add_spring_frames(x, ends, stiffness, vectors, np.int64(0), ends.shape[0], frame)
     fit_rotations(frame)
     for s in range(ends.shape[0]):
         a, b, k = ends[s, 0], ends[s, 1], stiffness[s]
@@ -232,7 +232,7 @@ def _spring_tension(x, ends, stiffness, vectors, frame, tension):
             turned = 0.0
             for j in range(3):
                 turned += (frame[a, 3 * i + j] + frame[b, 3 * i + j]) * vectors[s, j]
-            pull = k * ((x[b, i] - x[a, i]) - 0.5 * turned)
+            pull = k * ((x[i, b] - x[i, a]) - 0.5 * turned)
             total += pull * pull
         tension[s] = np.sqrt(total)
 
@@ -240,10 +240,10 @@ def _spring_tension(x, ends, stiffness, vectors, frame, tension):
 def spring_tension(model, positions) -> np.ndarray:
     """(S,) g mm/s^2: the size of each co-rotational spring's pull ``k (d - (R_a + R_b) D /
     2)`` at ``positions`` (n, 3) mm (input order), for the model's springs and rest pose."""
-    x = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3)
+    x = np.ascontiguousarray(np.asarray(positions, dtype=np.float64).reshape(-1, 3).T)
     ends = np.ascontiguousarray(model.springs, dtype=np.int64).reshape(-1, 2)
     k = np.ascontiguousarray(model.stiffness, dtype=np.float64)
-    state = corotational_state(model.spring_rest_vectors(), len(x))
+    state = corotational_state(model.spring_rest_vectors(), x.shape[1])
     tension = np.empty(len(ends))
     _spring_tension(x, ends, k, state.rest_vectors, state.frame, tension)
     return tension
