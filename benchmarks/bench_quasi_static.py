@@ -19,9 +19,10 @@ solution carried by the pose change): seconds, iterations, converged, and how fa
 answers are apart at the most flexed pose.
 Table 4 (``--levers``), per scene, pose and N: the solve in one stage (the default) and with the
 contacts softened first (``soft_start``, ``--soft-start``), each with and without the contacts between
-muscles in the preconditioner (``contact_preconditioner``): iterations, seconds of the solver
-filter's first update of the pose, the ratio to the paper's 500 relaxation iterations on the
-same pose in the same run, distance to a 10x tighter solve, energy and distance against the
+muscles in the preconditioner (``contact_preconditioner``), and the one-stage solve at the
+former default Tolerance 0.001 mm (the answer before these levers): iterations, seconds of the
+solver filter's first update of the pose, the ratio to the paper's 500 relaxation iterations on
+the same pose in the same run, distance to a 10x tighter solve, energy and distance against the
 one-stage solve without the contacts in the preconditioner, volume error, the muscle pairs
 left overlapping.
 Machine and load in the tables; written to benchmarks/results/ (``--out``).
@@ -65,6 +66,9 @@ from muscle_mss.filters.scene_io import write_scene
 from bench_solver import machine, write_result
 
 THIGH_POSES = (("walking", 0.35), ("most flexed", 0.75))
+# mm: the quasi-static solve's default tolerance before it became 0.1 mm (docs/solver-notes.md,
+# "The tolerance"); Table 4 solves each pose at it too, the answer the levers are held against
+FORMER_TOLERANCE = 1e-3
 ARM_ANGLES = (70.0, 130.0)
 
 
@@ -173,11 +177,15 @@ def first_update(model, bones, solids, settings):
 def levers(soft_start) -> tuple:
     """Table 4's solver configurations ``(label, settings)``: the one-stage solve without the
     contacts in the preconditioner first (the reference of the energy and distance columns),
-    each lever alone (the first stage at ``soft_start``), both; the defaults' row marked."""
+    each lever alone (the first stage at ``soft_start``), both, and the one-stage solve at
+    :data:`FORMER_TOLERANCE` (the answer before the levers and the looser tolerance); the
+    defaults' row marked."""
     rows = (("one stage", dict(soft_start=1.0, contact_preconditioner=False)),
             ("soft start", dict(soft_start=soft_start, contact_preconditioner=False)),
             ("contacts in preconditioner", dict(soft_start=1.0, contact_preconditioner=True)),
-            ("both", dict(soft_start=soft_start, contact_preconditioner=True)))
+            ("both", dict(soft_start=soft_start, contact_preconditioner=True)),
+            (f"one stage, Tolerance {FORMER_TOLERANCE:g} mm (the former default)",
+             dict(soft_start=1.0, contact_preconditioner=False, tolerance=FORMER_TOLERANCE)))
     default = QuasiStaticSettings()
     return tuple((label + (" (default)" if all(getattr(default, k) == v for k, v in
                                                  lever.items()) else ""), lever)
@@ -202,9 +210,9 @@ def lever_rows(model, bones, solids, args, paper_model):
     for label, lever in levers(args.soft_start):
         settings = chosen(args, iterations=args.cap, connective_tissue=args.ratio, **lever)
         result, seconds = first_update(model, bones, solids, settings)
+        tighter = dict(lever, tolerance=lever.get("tolerance", DEFAULT_TOLERANCE) / 10)
         tight, _ = first_update(model, bones, solids, chosen(
-            args, iterations=3 * args.cap, tolerance=DEFAULT_TOLERANCE / 10,
-            connective_tissue=args.ratio, **lever))
+            args, iterations=3 * args.cap, connective_tissue=args.ratio, **tighter))
         prepared = prepare(model)
         before = before or result
         rows.append((label, result.iterations, seconds, seconds / paper_seconds,
@@ -348,14 +356,17 @@ def main(args):
                   "the contacts softened in a first stage (QuasiStaticSettings.soft_start, "
                   "\"Soft contacts first\"; one stage: soft_start 1) and the contacts between "
                   "muscles in the preconditioner (contact_preconditioner, \"Contacts in the "
-                  "preconditioner\"), each alone and both, each pose's solve as the solver "
-                  "filter's first update (preparation included), the defaults otherwise. x "
+                  "preconditioner\"), each alone and both, and the one-stage solve at the "
+                  f"former default Tolerance {FORMER_TOLERANCE:g} mm; each pose's solve as "
+                  "the solver filter's first update (preparation included), the defaults "
+                  "otherwise. x "
                   "paper: its seconds "
                   "over the paper's 500 relaxation iterations on the same pose in the same run "
                   "(their seconds in the last column). To tighter: to the same solve at "
-                  f"Tolerance {DEFAULT_TOLERANCE / 10} mm. Energy and distance against the "
-                  "one-stage solve without the contacts in the preconditioner (the answer "
-                  "before either lever; mean / max mm, after the final passes); "
+                  f"a tenth of its Tolerance (the default's {DEFAULT_TOLERANCE:g} mm unless "
+                  "the row says). Energy and distance against the "
+                  "one-stage solve without the contacts in the preconditioner (the default's "
+                  "answer; mean / max mm, after the final passes); "
                   "cage volume error mean / max %; muscle pairs overlapping at the end.", "",
                   "| scene | N | pose | solver | iterations | seconds | "
                   "x paper | converged | to tighter | energy vs one stage % | to one stage | "
